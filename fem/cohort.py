@@ -1,0 +1,185 @@
+"""Cohort command: virtual patients -> labelled volumes -> tetrahedral meshes, pictures, report.
+
+    python -m fem.cohort                         # embedded default (conf/cohort.yaml)
+    python -m fem.cohort n_patients=258 out_dir=data/cohort/full workers=2
+
+Per breast ``P0007_L`` it writes ``P0007_L.vtu`` (ParaView, tissue fields), ``P0007_L.png``
+(sections) and, last, ``P0007_L.npz`` (the `Trajectory`); a breast whose ``.npz`` exists is
+finished and never redone, so a killed run resumes where it stopped. Every file is written
+atomically. The cohort table (``cohort.csv``), report (``cohort.json``) and summary figure
+(``cohort_summary.png``) are rebuilt from the finished breasts at the end of each run.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from pathlib import Path
+
+import hydra
+import numpy as np
+from hydra.utils import instantiate, to_absolute_path
+from omegaconf import DictConfig
+from tqdm import tqdm
+
+from fem.atomic import atomic_path
+from fem.figures import breast_sections_png, cohort_summary_png
+from fem.io import write_mesh
+from fem.mesh import Mesher
+from fem.phantom import PhantomGenerator
+
+LATERALITIES = ("L", "R")
+
+
+def breast_name(patient: int, laterality: str) -> str:
+    return f"P{patient:04d}_{laterality}"
+
+
+def make_breast(
+    generator: PhantomGenerator,
+    mesher: Mesher,
+    patient: int,
+    laterality: str,
+    out_dir: Path,
+    figures: bool,
+) -> dict:
+    """Generate, mesh and write one breast; returns its metadata (with timings)."""
+    t0 = time.perf_counter()
+    volume, meta = generator.breast(patient, laterality)
+    t1 = time.perf_counter()
+    traj = mesher(volume, meta)
+    t2 = time.perf_counter()
+    name = breast_name(patient, laterality)
+    write_mesh(traj, out_dir / f"{name}.vtu")
+    if figures:
+        breast_sections_png(traj, out_dir / f"{name}.png", volume)
+    traj.metadata["timing_s"] = {
+        "phantom": t1 - t0,
+        "mesh": t2 - t1,
+        "total": time.perf_counter() - t0,
+    }
+    traj.save(out_dir / f"{name}.npz")  # last: its presence marks the breast as finished
+    return traj.metadata
+
+
+def read_metadata(path: Path) -> dict:
+    """Metadata of a finished breast, without loading its arrays."""
+    with np.load(path, allow_pickle=False) as z:
+        return json.loads(str(z["metadata"]))
+
+
+def write_report(
+    out_dir: Path, n_patients: int, failures: list[dict], wall_s: float | None
+) -> dict:
+    """Cohort table, report and summary figure from all finished breasts in ``out_dir``."""
+    rows = [read_metadata(p) for p in sorted(out_dir.glob("P*_[LR].npz"))]
+    rows = [r for r in rows if r["patient"] < n_patients]
+    columns = [
+        "patient",
+        "laterality",
+        "site",
+        "age",
+        "breast_volume_cm3",
+        "glandular_fraction",
+        "density_category",
+        "uncompressed_thickness_mm",
+        "target_compression_ratio",
+        "compressed_thickness_mm",
+    ]
+    mesh_columns = ["n_elements", "n_nodes", "volume_error"]
+    quality_columns = ["min_radius_ratio", "min_dihedral_deg", "max_dihedral_deg"]
+    with atomic_path(out_dir / "cohort.csv") as tmp, open(tmp, "w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(columns + mesh_columns + quality_columns)
+        for r in rows:
+            writer.writerow(
+                [r[c] for c in columns]
+                + [r["mesh"][c] for c in mesh_columns]
+                + [r["mesh"]["quality"][c] for c in quality_columns]
+            )
+    report: dict = {"n_patients": n_patients, "n_breasts_finished": len(rows), "failures": failures}
+    if rows:
+        n_el = [r["mesh"]["n_elements"] for r in rows]
+        verr = [r["mesh"]["volume_error"] for r in rows]
+        worst = min(rows, key=lambda r: r["mesh"]["quality"]["min_radius_ratio"])
+        report.update(
+            {
+                "elements": {"min": min(n_el), "max": max(n_el), "median": float(np.median(n_el))},
+                "volume_error": {
+                    "min": min(verr),
+                    "max": max(verr),
+                    "max_abs": max(map(abs, verr)),
+                },
+                "worst_quality": {
+                    "breast": breast_name(worst["patient"], worst["laterality"]),
+                    **worst["mesh"]["quality"],
+                },
+                "min_dihedral_deg": min(r["mesh"]["quality"]["min_dihedral_deg"] for r in rows),
+                "max_dihedral_deg": max(r["mesh"]["quality"]["max_dihedral_deg"] for r in rows),
+                "n_inverted": sum(r["mesh"]["quality"]["n_inverted"] for r in rows),
+                "sites": {
+                    s: sum(r["site"] == s for r in rows) for s in sorted({r["site"] for r in rows})
+                },
+                "seconds_per_breast_cpu": float(np.mean([r["timing_s"]["total"] for r in rows])),
+            }
+        )
+        cohort_summary_png(rows, out_dir / "cohort_summary.png")
+    if wall_s is not None:
+        report["wall_s_last_run"] = wall_s
+    with atomic_path(out_dir / "cohort.json") as tmp:
+        tmp.write_text(json.dumps(report, indent=2))
+    return report
+
+
+def run_cohort(cfg: DictConfig) -> dict:
+    """Generate every unfinished breast of the cohort in parallel, then write the report."""
+    out_dir = Path(to_absolute_path(cfg.out_dir))
+    out_dir.mkdir(parents=True, exist_ok=True)
+    generator: PhantomGenerator = instantiate(cfg.generator)
+    mesher: Mesher = instantiate(cfg.mesher)
+    todo = [
+        (p, lat)
+        for p in range(cfg.n_patients)
+        for lat in LATERALITIES
+        if not (out_dir / f"{breast_name(p, lat)}.npz").exists()
+    ]
+    done = 2 * cfg.n_patients - len(todo)
+    failures: list[dict] = []
+    t0 = time.perf_counter()
+    with (
+        ProcessPoolExecutor(max_workers=cfg.workers) as pool,
+        tqdm(
+            total=2 * cfg.n_patients, initial=done, unit="breast", desc=f"cohort -> {out_dir}"
+        ) as bar,
+    ):
+        futures = {
+            pool.submit(make_breast, generator, mesher, p, lat, out_dir, cfg.figures): (p, lat)
+            for p, lat in todo
+        }
+        for fut in as_completed(futures):
+            p, lat = futures[fut]
+            try:
+                fut.result()
+            except Exception as exc:  # a failed breast is reported, never written
+                failures.append(
+                    {"breast": breast_name(p, lat), "reason": f"{type(exc).__name__}: {exc}"}
+                )
+                tqdm.write(f"FAILED {breast_name(p, lat)}: {exc}")
+            bar.update()
+    report = write_report(out_dir, cfg.n_patients, failures, time.perf_counter() - t0)
+    print(json.dumps({k: v for k, v in report.items() if k != "failures"}, indent=2))
+    print(f"{len(failures)} failures; outputs in {out_dir}")
+    return report
+
+
+@hydra.main(config_path="../conf", config_name="cohort", version_base="1.3")
+def main(cfg: DictConfig) -> None:
+    report = run_cohort(cfg)
+    if report["failures"]:
+        raise SystemExit(1)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,112 @@
+"""Geometric quality of linear tetrahedra: signed volume, dihedral angles, radius ratio."""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+#: Local vertex pairs of the six edges, and for each edge the two faces (by opposite vertex)
+#: that share it: edge (i, j) is shared by the faces opposite the other two vertices.
+EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
+EDGE_FACES = np.array([[2, 3], [1, 3], [1, 2], [0, 3], [0, 2], [0, 1]])
+
+
+def signed_volume(points: NDArray, cells: NDArray) -> NDArray[np.float64]:
+    """Signed volume of each tetrahedron, ``det[x1-x0, x2-x0, x3-x0] / 6``.
+
+    Parameters
+    ----------
+    points : (N, 3) float
+        Node coordinates, mm.
+    cells : (E, 4) int
+        Node indices.
+
+    Returns
+    -------
+    (E,) float64
+        Volume in mm^3, positive for the right-handed vertex order.
+    """
+    p = points[cells]
+    a, b, c = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]
+    return np.einsum("ij,ij->i", np.cross(a, b), c) / 6.0
+
+
+def face_normals(points: NDArray, cells: NDArray) -> NDArray[np.float64]:
+    """Area-weighted outward normals of the four faces, face ``k`` opposite vertex ``k``.
+
+    Returns
+    -------
+    (E, 4, 3) float64
+        Normal times face area (mm^2) for positively oriented cells.
+    """
+    p = points[cells]
+    faces = ((1, 2, 3), (0, 3, 2), (0, 1, 3), (0, 2, 1))
+    return np.stack(
+        [0.5 * np.cross(p[:, j] - p[:, i], p[:, k] - p[:, i]) for i, j, k in faces], axis=1
+    )
+
+
+def dihedral_angles(points: NDArray, cells: NDArray) -> NDArray[np.float64]:
+    """The six interior dihedral angles of each tetrahedron, degrees, shape (E, 6)."""
+    n = face_normals(points, cells)
+    n /= np.maximum(np.linalg.norm(n, axis=2, keepdims=True), 1e-300)
+    cos = -np.einsum("eij,eij->ei", n[:, EDGE_FACES[:, 0]], n[:, EDGE_FACES[:, 1]])
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def radius_ratio(points: NDArray, cells: NDArray) -> NDArray[np.float64]:
+    """Normalised radius ratio ``3 r_in / R_circ``: 1 for the regular tetrahedron, 0 degenerate.
+
+    Signed like the volume, so an inverted element has a negative ratio.
+    """
+    p = points[cells]
+    a, b, c = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]
+    six_v = np.einsum("ij,ij->i", np.cross(a, b), c)
+    area = np.linalg.norm(face_normals(points, cells), axis=2).sum(axis=1)
+    r_in = np.abs(six_v) / 2.0 / np.maximum(area, 1e-300)  # 3V / A
+    num = (
+        (a * a).sum(1)[:, None] * np.cross(b, c)
+        + (b * b).sum(1)[:, None] * np.cross(c, a)
+        + (c * c).sum(1)[:, None] * np.cross(a, b)
+    )
+    r_circ = np.linalg.norm(num, axis=1) / np.maximum(2.0 * np.abs(six_v), 1e-300)
+    return np.sign(six_v) * 3.0 * r_in / np.maximum(r_circ, 1e-300)
+
+
+def quality_report(points: NDArray, cells: NDArray) -> dict[str, float]:
+    """Summary of element quality (worst and mean), JSON-serialisable."""
+    rr = radius_ratio(points, cells)
+    dih = dihedral_angles(points, cells)
+    vol = signed_volume(points, cells)
+    return {
+        "min_radius_ratio": float(rr.min()),
+        "mean_radius_ratio": float(rr.mean()),
+        "min_dihedral_deg": float(dih.min()),
+        "max_dihedral_deg": float(dih.max()),
+        "min_volume_mm3": float(vol.min()),
+        "n_inverted": int((vol <= 0).sum()),
+    }
+
+
+def check_cells(
+    points: NDArray, cells: NDArray, source: str, min_radius_ratio: float = 1e-3
+) -> None:
+    """Raise ``ValueError`` naming ``source`` if any tetrahedron is inverted or degenerate.
+
+    A degenerate tetrahedron is one with a normalised radius ratio below ``min_radius_ratio``
+    (flat slivers, needles, coincident nodes).
+    """
+    vol = signed_volume(points, cells)
+    inverted = np.flatnonzero(vol < 0)
+    if inverted.size:
+        raise ValueError(
+            f"{source}: {inverted.size} inverted tetrahedra (negative signed volume), "
+            f"first cells {inverted[:5].tolist()} with volumes {np.round(vol[inverted[:5]], 4).tolist()} mm^3"
+        )
+    rr = radius_ratio(points, cells)
+    bad = np.flatnonzero(rr < min_radius_ratio)
+    if bad.size:
+        raise ValueError(
+            f"{source}: {bad.size} degenerate tetrahedra (radius ratio < {min_radius_ratio}), "
+            f"first cells {bad[:5].tolist()}"
+        )
