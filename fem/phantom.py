@@ -315,7 +315,7 @@ def label_breast(
     muscle = (d < 0) & (d >= -s.muscle_thickness) & base
 
     # Fibroglandular tissue: smooth Gaussian field + retroareolar bias, quantile-thresholded.
-    coarse = max(2, int(round(s.gland_length / (2 * voxel_size))))
+    coarse = max(2, round(s.gland_length / (2 * voxel_size)))
     field = rng.standard_normal(np.ceil(n / coarse).astype(int) + 1).astype(np.float32)
     field = ndimage.gaussian_filter(field, s.gland_length / (coarse * voxel_size), mode="wrap")
     field = ndimage.zoom(field, coarse, order=1)[: n[0], : n[1], : n[2]]
@@ -330,7 +330,7 @@ def label_breast(
         & (d > s.retromammary_fat)
         & (d < s.projection - s.subcutaneous_fat)
     )
-    n_gland = int(round(s.glandular_fraction * breast.sum()))
+    n_gland = round(s.glandular_fraction * breast.sum())
     labels = np.zeros(tuple(n), np.uint8)
     labels[muscle] = Tissue.MUSCLE
     labels[breast] = Tissue.FAT
