@@ -1,0 +1,1 @@
+"""LightningDataModules over FE trajectories (issue 4)."""

@@ -1,0 +1,1 @@
+"""Finite-element side: virtual patients, meshing, mesh I/O and (next) the FE solver."""

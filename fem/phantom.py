@@ -21,6 +21,7 @@ Anatomy, in the breast's local frame (u lateral, v anterior, w superior; mm):
 
 from __future__ import annotations
 
+import json
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -254,7 +255,8 @@ class PhantomGenerator:
             "uncompressed_thickness_mm": thickness,
             "target_compression_ratio": shape.compression_ratio,
             "compressed_thickness_mm": (1.0 - shape.compression_ratio) * thickness,
-            "phantom": {k: v for k, v in asdict(shape).items() if k != "laterality"},
+            # JSON-normal (tuples as lists) so that metadata survives a save/load round trip.
+            "phantom": json.loads(json.dumps({k: v for k, v in asdict(shape).items() if k != "laterality"})),
         }
         return volume, meta
 

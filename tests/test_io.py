@@ -1,0 +1,163 @@
+import meshio
+import nibabel
+import nrrd
+import numpy as np
+import pytest
+
+from fem.io import load_breast, read_mesh, read_segmentation, write_mesh
+from fem.mesh import Mesher
+from fem.trajectory import Tissue, Trajectory
+
+USER_LABELS = {"background": 0, "fat": 10, "gland": [20, 21], "muscle": 30}
+
+
+def _user_labels(volume):
+    """The ellipsoid phantom relabelled with a user's label values."""
+    out = np.zeros(volume.labels.shape, np.int16)
+    out[volume.labels == Tissue.FAT] = 10
+    out[volume.labels == Tissue.GLAND] = 21
+    out[volume.labels == Tissue.MUSCLE] = 30
+    return out
+
+
+@pytest.mark.parametrize("suffix", [".nii.gz", ".nrrd", ".npy", ".npz"])
+def test_user_segmentation_meshes(tmp_path, ellipsoid_volume, suffix):
+    data = _user_labels(ellipsoid_volume)
+    path = tmp_path / f"seg{suffix}"
+    if suffix == ".nii.gz":
+        nibabel.save(nibabel.Nifti1Image(data, ellipsoid_volume.affine), str(path))
+    elif suffix == ".nrrd":  # LPS space, as 3D Slicer writes
+        header = {
+            "space": "left-posterior-superior",
+            "space directions": np.diag([-1.0, -1.0, 1.0]),
+            "space origin": -ellipsoid_volume.affine[:3, 3] * [1, 1, -1],
+        }
+        nrrd.write(str(path), data, header)
+    elif suffix == ".npy":
+        np.save(path, data)
+    else:
+        np.savez(path, labels=data, affine=ellipsoid_volume.affine)
+    volume = read_segmentation(path, USER_LABELS)
+    np.testing.assert_array_equal(volume.labels, ellipsoid_volume.labels)
+    if suffix != ".npy":
+        np.testing.assert_allclose(volume.affine, ellipsoid_volume.affine)
+    mesh = load_breast(path, USER_LABELS, mesher=Mesher(target_elements=900, tolerance=150))
+    assert 750 <= mesh.n_cells <= 1050
+    assert set(np.unique(mesh.tissue)) == {1, 2, 3}
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(FileNotFoundError, match="nope.nii.gz"):
+        read_segmentation(tmp_path / "nope.nii.gz")
+    with pytest.raises(FileNotFoundError, match="nope.vtu"):
+        load_breast(tmp_path / "nope.vtu")
+
+
+def test_unknown_label_value(tmp_path, ellipsoid_volume):
+    data = _user_labels(ellipsoid_volume)
+    data[0, 0, 0] = 99
+    np.save(tmp_path / "seg.npy", data)
+    with pytest.raises(ValueError, match=r"seg\.npy: field 'labels' contains value\(s\) \[99\]"):
+        read_segmentation(tmp_path / "seg.npy", USER_LABELS)
+
+
+def test_no_breast_labels(tmp_path):
+    data = np.zeros((10, 10, 10), np.uint8)
+    data[2:5, 2:5, 2:5] = 3
+    np.save(tmp_path / "muscle_only.npy", data)
+    with pytest.raises(ValueError, match=r"muscle_only\.npy: no breast labels"):
+        read_segmentation(tmp_path / "muscle_only.npy")
+
+
+@pytest.mark.parametrize(
+    ("suffix", "field", "fmt"),
+    [(".vtu", "tissue", None), (".vtk", "tissue", None), (".msh", "gmsh:physical", "gmsh22"), (".mesh", "medit:ref", None)],
+)
+def test_meshio_round_trip(tmp_path, breast_mesh, suffix, field, fmt):
+    path = tmp_path / f"breast{suffix}"
+    if field == "tissue":
+        write_mesh(breast_mesh, path)
+    else:  # Gmsh physical groups / MEDIT references carry the tissue
+        tissue = [breast_mesh.tissue.astype(np.int32)]
+        data = {field: tissue, **({"gmsh:geometrical": tissue} if fmt else {})}
+        meshio.write(path, meshio.Mesh(breast_mesh.points, [("tetra", breast_mesh.cells)], cell_data=data),
+                     file_format=fmt)
+    back = read_mesh(path, tissue_field=field)
+    np.testing.assert_allclose(back.points, breast_mesh.points)
+    np.testing.assert_array_equal(back.cells, breast_mesh.cells)
+    np.testing.assert_array_equal(back.tissue, breast_mesh.tissue)
+    np.testing.assert_array_equal(back.node_tissue_code, breast_mesh.node_tissue_code)
+    np.testing.assert_array_equal(back.node_flags, breast_mesh.node_flags)
+    np.testing.assert_array_equal(back.skin, breast_mesh.skin)
+
+
+def test_abaqus_element_sets(tmp_path, breast_mesh):
+    sets = {name.upper(): [np.flatnonzero(breast_mesh.tissue == t)] for name, t in
+            (("fat", 1), ("gland", 2), ("muscle", 3))}
+    m = meshio.Mesh(breast_mesh.points, [("tetra", breast_mesh.cells)], cell_sets=sets)
+    meshio.write(tmp_path / "breast.inp", m)
+    back = read_mesh(tmp_path / "breast.inp")
+    np.testing.assert_array_equal(back.tissue, breast_mesh.tissue)
+
+
+def test_mesh_without_tetrahedra(tmp_path):
+    m = meshio.Mesh(np.eye(3), [("triangle", np.array([[0, 1, 2]]))])
+    meshio.write(tmp_path / "surface.vtu", m)
+    with pytest.raises(ValueError, match=r"surface\.vtu: no tetrahedral cells \(found: triangle\)"):
+        read_mesh(tmp_path / "surface.vtu")
+
+
+def test_mesh_with_inverted_tetrahedron(tmp_path, breast_mesh):
+    cells = breast_mesh.cells.copy()
+    cells[5] = cells[5][[0, 2, 1, 3]]
+    m = meshio.Mesh(breast_mesh.points, [("tetra", cells)], cell_data={"tissue": [breast_mesh.tissue]})
+    meshio.write(tmp_path / "bad.vtu", m)
+    with pytest.raises(ValueError, match=r"bad\.vtu: 1 inverted tetrahedra.*\[5\]"):
+        read_mesh(tmp_path / "bad.vtu")
+
+
+def test_consistently_reversed_mesh_is_reoriented(tmp_path, breast_mesh):
+    m = meshio.Mesh(breast_mesh.points, [("tetra", breast_mesh.cells[:, [1, 0, 2, 3]])],
+                    cell_data={"tissue": [breast_mesh.tissue]})
+    meshio.write(tmp_path / "rev.vtu", m)
+    assert read_mesh(tmp_path / "rev.vtu").n_cells == breast_mesh.n_cells
+
+
+def test_mesh_without_tissue(tmp_path, breast_mesh):
+    meshio.write(tmp_path / "plain.vtu", meshio.Mesh(breast_mesh.points, [("tetra", breast_mesh.cells)]))
+    with pytest.raises(ValueError, match=r"plain\.vtu: no per-cell tissue: cell field 'tissue' is missing"):
+        read_mesh(tmp_path / "plain.vtu")
+
+
+def test_unknown_tissue_value_in_mesh(tmp_path, breast_mesh):
+    tissue = breast_mesh.tissue.astype(int)
+    tissue[3] = 9
+    m = meshio.Mesh(breast_mesh.points, [("tetra", breast_mesh.cells)], cell_data={"tissue": [tissue]})
+    meshio.write(tmp_path / "t.vtu", m)
+    with pytest.raises(ValueError, match=r"t\.vtu: cell field 'tissue' contains value\(s\) \[9\]"):
+        read_mesh(tmp_path / "t.vtu")
+
+
+def test_trajectory_round_trip(tmp_path, breast_mesh):
+    path = breast_mesh.save(tmp_path / "b.npz")
+    back = Trajectory.load(path)
+    for name in ("points", "cells", "tissue", "node_tissue_code", "node_flags", "skin", "unloaded",
+                 "compressed", "plates", "compression_ratio"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(breast_mesh, name))
+    assert back.metadata == breast_mesh.metadata
+    assert load_breast(path).n_cells == breast_mesh.n_cells
+    assert list(tmp_path.iterdir()) == [path]  # no temporary left behind
+
+
+def test_trajectory_rejects_bad_fields(tmp_path, breast_mesh):
+    with pytest.raises(ValueError, match="field 'tissue' has shape"):
+        Trajectory(breast_mesh.points, breast_mesh.cells, breast_mesh.tissue[:-1],
+                   breast_mesh.node_tissue_code, breast_mesh.node_flags, breast_mesh.skin)
+    pts = breast_mesh.points.copy()
+    pts[0, 0] = np.nan
+    with pytest.raises(ValueError, match="field 'points' contains NaN"):
+        Trajectory(pts, breast_mesh.cells, breast_mesh.tissue, breast_mesh.node_tissue_code,
+                   breast_mesh.node_flags, breast_mesh.skin)
+    np.savez(tmp_path / "old.npz", schema_version=0)
+    with pytest.raises(ValueError, match=r"old\.npz: field 'schema_version' is 0"):
+        Trajectory.load(tmp_path / "old.npz")
