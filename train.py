@@ -7,4 +7,6 @@ Delivered by issue 4 (the learning pipeline). Until then the main job is the coh
 import sys
 
 if __name__ == "__main__":
-    sys.exit("train.py: the learning pipeline is not implemented yet (issue 4); run `python -m fem.cohort`")
+    sys.exit(
+        "train.py: the learning pipeline is not implemented yet (issue 4); run `python -m fem.cohort`"
+    )

@@ -256,7 +256,9 @@ class PhantomGenerator:
             "target_compression_ratio": shape.compression_ratio,
             "compressed_thickness_mm": (1.0 - shape.compression_ratio) * thickness,
             # JSON-normal (tuples as lists) so that metadata survives a save/load round trip.
-            "phantom": json.loads(json.dumps({k: v for k, v in asdict(shape).items() if k != "laterality"})),
+            "phantom": json.loads(
+                json.dumps({k: v for k, v in asdict(shape).items() if k != "laterality"})
+            ),
         }
         return volume, meta
 

@@ -34,7 +34,9 @@ def ellipsoid_volume() -> LabelVolume:
     labels = np.zeros(x.shape, np.uint8)
     inside = (x / 42.0) ** 2 + (y / 45.0) ** 2 + (z / 38.0) ** 2 <= 1
     labels[inside & (y >= 0)] = Tissue.FAT
-    labels[inside & (y >= 0) & ((x / 15.0) ** 2 + ((y - 18) / 15.0) ** 2 + (z / 15.0) ** 2 <= 1)] = Tissue.GLAND
+    labels[
+        inside & (y >= 0) & ((x / 15.0) ** 2 + ((y - 18) / 15.0) ** 2 + (z / 15.0) ** 2 <= 1)
+    ] = Tissue.GLAND
     labels[((x / 42.0) ** 2 + (z / 38.0) ** 2 <= 1) & (y < 0) & (y >= -6)] = Tissue.MUSCLE
     affine = np.eye(4)
     affine[:3, 3] = [-45, -8, -40]

@@ -41,7 +41,9 @@ def test_mesh_volume_matches_voxels(breast_mesh, phantom):
     basis = skfem.Basis(mesh, skfem.ElementTetP1())
     one = skfem.Functional(lambda w: 1.0 + 0 * w.x[0])
     assert one.assemble(basis) == pytest.approx(voxel, rel=0.05)
-    assert signed_volume(breast_mesh.points, breast_mesh.cells).sum() == pytest.approx(one.assemble(basis))
+    assert signed_volume(breast_mesh.points, breast_mesh.cells).sum() == pytest.approx(
+        one.assemble(basis)
+    )
 
 
 def test_node_codes_consistent_with_elements(breast_mesh):
@@ -94,6 +96,10 @@ def test_target_elements_configurable(ellipsoid_volume):
 def test_volume_without_breast_labels(ellipsoid_volume):
     from fem.phantom import LabelVolume
 
-    only_muscle = LabelVolume(np.where(ellipsoid_volume.labels == 3, 3, 0).astype(np.uint8), ellipsoid_volume.affine, "m.nii")
+    only_muscle = LabelVolume(
+        np.where(ellipsoid_volume.labels == 3, 3, 0).astype(np.uint8),
+        ellipsoid_volume.affine,
+        "m.nii",
+    )
     with pytest.raises(ValueError, match=r"m\.nii: no breast labels"):
         Mesher()(only_muscle)
