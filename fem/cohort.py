@@ -116,6 +116,12 @@ def write_report(
                     "breast": breast_name(worst["patient"], worst["laterality"]),
                     **worst["mesh"]["quality"],
                 },
+                "surface_distance_mm": {
+                    "max": max(r["mesh"]["surface_distance_mm"]["max"] for r in rows),
+                    "median_p95": float(
+                        np.median([r["mesh"]["surface_distance_mm"]["p95"] for r in rows])
+                    ),
+                },
                 "min_dihedral_deg": min(r["mesh"]["quality"]["min_dihedral_deg"] for r in rows),
                 "max_dihedral_deg": max(r["mesh"]["quality"]["max_dihedral_deg"] for r in rows),
                 "n_inverted": sum(r["mesh"]["quality"]["n_inverted"] for r in rows),
