@@ -126,7 +126,8 @@ def write_report(
                 "max_dihedral_deg": max(r["mesh"]["quality"]["max_dihedral_deg"] for r in rows),
                 "n_inverted": sum(r["mesh"]["quality"]["n_inverted"] for r in rows),
                 "sites": {
-                    s: sum(r["site"] == s for r in rows) for s in sorted({r["site"] for r in rows})
+                    s: site_statistics([r for r in rows if r["site"] == s])
+                    for s in sorted({r["site"] for r in rows})
                 },
                 "seconds_per_breast_cpu": float(np.mean([r["timing_s"]["total"] for r in rows])),
             }
@@ -137,6 +138,33 @@ def write_report(
     with atomic_path(out_dir / "cohort.json") as tmp:
         tmp.write_text(json.dumps(report, indent=2))
     return report
+
+
+def site_statistics(rows: list[dict]) -> dict:
+    """Breast count, quantiles of volume, glandular fraction and compression ratio, and
+    density-category shares of one site."""
+
+    def quantiles(values: list[float]) -> dict[str, float]:
+        q = np.percentile(values, [0, 5, 50, 95, 100])
+        return dict(zip(("min", "p5", "median", "p95", "max"), map(float, q), strict=True))
+
+    cr = np.array([r["target_compression_ratio"] for r in rows])
+    return {
+        "breasts": len(rows),
+        "patients": len({r["patient"] for r in rows}),
+        "breast_volume_cm3": quantiles([r["breast_volume_cm3"] for r in rows]),
+        "glandular_fraction": quantiles([r["glandular_fraction"] for r in rows]),
+        "density_category_share": {
+            c: float(np.mean([r["density_category"] == c for r in rows])) for c in "abcd"
+        },
+        "compression_ratio": quantiles(cr.tolist()),
+        "compression_ratio_share": {
+            "below_30": float(np.mean(cr < 0.3)),
+            "30_to_60": float(np.mean((cr >= 0.3) & (cr <= 0.6))),
+            "above_60": float(np.mean(cr > 0.6)),
+        },
+        "compressed_thickness_mm": quantiles([r["compressed_thickness_mm"] for r in rows]),
+    }
 
 
 def run_cohort(cfg: DictConfig) -> dict:

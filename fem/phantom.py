@@ -78,14 +78,14 @@ class Site:
     volume_median_cm3: float  #: median breast volume (log-normal)
     volume_sigma: float  #: log-space standard deviation
     density_probabilities: tuple[float, float, float, float]  #: BI-RADS a, b, c, d
-    compression_mean: float  #: mean compression ratio (truncated normal)
-    compression_sd: float
+    compression_mean: float  #: mean of the compression ratio's normal part
+    compression_sd: float  #: its standard deviation
 
 
 #: Two sites echoing the reference paper's cohort (26 Vienna + 232 Jena patients, ~10 / 90 %).
 SITES = (
-    Site("A", 0.10, (29, 78), 52, 11, 520.0, 0.50, (0.06, 0.34, 0.44, 0.16), 0.42, 0.12),
-    Site("B", 0.90, (23, 92), 57, 12, 620.0, 0.55, (0.10, 0.43, 0.39, 0.08), 0.46, 0.10),
+    Site("A", 0.10, (29, 78), 52, 11, 520.0, 0.50, (0.06, 0.34, 0.44, 0.16), 0.42, 0.10),
+    Site("B", 0.90, (23, 92), 57, 12, 620.0, 0.55, (0.10, 0.43, 0.39, 0.08), 0.46, 0.09),
 )
 
 #: Volumetric glandular fraction range of each BI-RADS density category (Volpara density
@@ -128,6 +128,28 @@ class BreastShape:
     compression_ratio: float
 
 
+GOLDEN = (np.sqrt(5.0) - 1.0) / 2.0
+
+#: Share of the compression-ratio distribution spread uniformly over `COMPRESSION_RANGE`
+#: (the rest is the site's truncated normal): the rare very light and very firm compressions.
+COMPRESSION_TAIL = 0.12
+
+
+def compression_quantile(site: Site, u: float) -> float:
+    """Inverse CDF of a site's compression-ratio distribution at quantile ``u``.
+
+    The distribution is ``(1 - COMPRESSION_TAIL)`` truncated normal (the site's mean and
+    standard deviation) plus ``COMPRESSION_TAIL`` uniform, both on `COMPRESSION_RANGE`.
+    """
+    x = np.linspace(*COMPRESSION_RANGE, 2001)
+    normal = np.exp(-0.5 * ((x - site.compression_mean) / site.compression_sd) ** 2)
+    pdf = (1 - COMPRESSION_TAIL) * normal / np.trapezoid(normal, x) + COMPRESSION_TAIL / (
+        x[-1] - x[0]
+    )
+    cdf = np.concatenate([[0.0], np.cumsum(0.5 * (pdf[1:] + pdf[:-1]) * np.diff(x))])
+    return float(np.interp(u, cdf / cdf[-1], x))
+
+
 def _truncated_normal(
     rng: np.random.Generator, mean: float, sd: float, lo: float, hi: float
 ) -> float:
@@ -161,6 +183,13 @@ class PhantomGenerator:
     def _rng(self, *keys: int) -> np.random.Generator:
         return np.random.default_rng(np.random.SeedSequence([self.seed, *keys]))
 
+    def _compression_u(self, index: int) -> float:
+        """Quantile of patient ``index``'s compression ratio: a golden-ratio low-discrepancy
+        sequence, so that any run of consecutive patients spreads evenly over the whole
+        distribution, tails included (it depends only on the seed and the index)."""
+        u0 = self._rng(2**31 - 1).random()
+        return float((u0 + index * GOLDEN) % 1.0)
+
     def patient(self, index: int) -> dict:
         """Patient-level facts shared by both breasts."""
         rng = self._rng(index)
@@ -179,9 +208,7 @@ class PhantomGenerator:
             "volume_cm3": volume,
             "density_category": category,
             "glandular_fraction": float(rng.uniform(lo, hi)),
-            "compression_ratio": _truncated_normal(
-                rng, site.compression_mean, site.compression_sd, *COMPRESSION_RANGE
-            ),
+            "compression_ratio": compression_quantile(site, self._compression_u(index)),
             "shape": rng.uniform(size=8).tolist(),  # shared shape genes, jittered per breast
             "chest_radius": float(rng.uniform(140.0, 220.0)),
             "midline_offset": float(rng.uniform(15.0, 35.0)),

@@ -3,6 +3,7 @@ import pytest
 import skfem
 
 from fem.mesh import Mesher, bcc_lattice, boundary_faces
+from fem.phantom import PhantomGenerator
 from fem.quality import dihedral_angles, radius_ratio, signed_volume
 from fem.trajectory import TISSUE_BIT, NodeFlag, Tissue
 
@@ -78,8 +79,9 @@ def test_skin_is_closed_outward_surface_of_breast(breast_mesh):
     assert len(breast_mesh.skin) == (breast_mesh.tissue[owner] != Tissue.MUSCLE).sum()
 
 
-def test_determinism(phantom, breast_mesh):
-    volume, meta = phantom
+def test_determinism(breast_mesh):
+    """Same seed -> identical mesh arrays, from a fresh generator and mesher."""
+    volume, meta = PhantomGenerator(seed=7).breast(1, "L")
     again = Mesher()(volume, meta)
     for name in ("points", "cells", "tissue", "node_tissue_code", "node_flags", "skin"):
         np.testing.assert_array_equal(getattr(again, name), getattr(breast_mesh, name))
@@ -103,3 +105,19 @@ def test_volume_without_breast_labels(ellipsoid_volume):
     )
     with pytest.raises(ValueError, match=r"m\.nii: no breast labels"):
         Mesher()(only_muscle)
+
+
+@pytest.mark.slow
+def test_many_breasts_meet_mesh_contract():
+    """40 breasts of another seed: element window, quality floor, volume, tissue codes."""
+    gen, mesher = PhantomGenerator(seed=11), Mesher()
+    for patient in range(20):
+        for lat in "LR":
+            volume, meta = gen.breast(patient, lat)
+            mesh = mesher(volume, meta)
+            info = mesh.metadata["mesh"]
+            assert 2000 <= mesh.n_cells <= 2500
+            assert radius_ratio(mesh.points, mesh.cells).min() >= 0.2 - 1e-9
+            assert abs(info["volume_error"]) < 0.05
+            assert mesh.flagged(NodeFlag.MUSCLE_INTERFACE).size > 0
+            assert mesh.flagged(NodeFlag.UPPER_CONTACT).size > 0

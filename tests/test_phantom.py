@@ -77,7 +77,7 @@ def test_cohort_distributions():
     vol = np.array([p["volume_cm3"] for p in pats])
     assert vol.min() >= 100 and vol.max() <= 2500
     cr = np.array([p["compression_ratio"] for p in pats])
-    assert cr.min() >= 0.05 and cr.max() <= 0.76
+    assert 0.05 <= cr.min() < 0.1 and 0.72 < cr.max() <= 0.76  # the tails are covered
     assert np.mean((cr >= 0.3) & (cr <= 0.6)) > 0.7
     assert np.mean(cr > 0.6) < 0.15
     cats = {p["density_category"] for p in pats}
@@ -87,3 +87,14 @@ def test_cohort_distributions():
 def test_bad_laterality(generator):
     with pytest.raises(ValueError, match="laterality"):
         generator.shape(0, "X")
+
+
+def test_compression_quantile_inverts_distribution():
+    from fem.phantom import COMPRESSION_RANGE, SITES, compression_quantile
+
+    site = SITES[1]
+    assert compression_quantile(site, 0.0) == pytest.approx(COMPRESSION_RANGE[0])
+    assert compression_quantile(site, 1.0) == pytest.approx(COMPRESSION_RANGE[1])
+    assert compression_quantile(site, 0.5) == pytest.approx(site.compression_mean, abs=0.01)
+    u = np.linspace(0, 1, 101)
+    assert np.all(np.diff([compression_quantile(site, x) for x in u]) > 0)
