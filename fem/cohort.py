@@ -15,6 +15,7 @@ from __future__ import annotations
 import csv
 import json
 import time
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
@@ -137,7 +138,59 @@ def write_report(
         report["wall_s_last_run"] = wall_s
     with atomic_path(out_dir / "cohort.json") as tmp:
         tmp.write_text(json.dumps(report, indent=2))
+    if rows:
+        with atomic_path(out_dir / "cohort_summary.md") as tmp:
+            tmp.write_text(summary_markdown(report))
     return report
+
+
+def summary_markdown(report: dict) -> str:
+    """The cohort report as Markdown tables (per-site distributions, then meshes)."""
+    sites = report["sites"]
+    names = list(sites)
+
+    def row(label: str, fmt) -> str:
+        return f"| {label} | " + " | ".join(fmt(sites[s]) for s in names) + " |"
+
+    def q(key: str, scale: float = 1.0, digits: int = 0) -> Callable[[dict], str]:
+        return lambda st: (
+            f"{scale * st[key]['median']:.{digits}f} ({scale * st[key]['p5']:.{digits}f}-"
+            f"{scale * st[key]['p95']:.{digits}f}; {scale * st[key]['min']:.{digits}f}-{scale * st[key]['max']:.{digits}f})"
+        )
+
+    lines = [
+        "| per site | " + " | ".join(f"site {s}" for s in names) + " |",
+        "| --- | " + " | ".join("---" for _ in names) + " |",
+        row("patients / breasts", lambda st: f"{st['patients']} / {st['breasts']}"),
+        row("breast volume, cm^3: median (5-95 %; min-max)", q("breast_volume_cm3")),
+        row("glandular fraction, %", q("glandular_fraction", 100, 1)),
+        row(
+            "BI-RADS a / b / c / d, %",
+            lambda st: " / ".join(f"{100 * st['density_category_share'][c]:.0f}" for c in "abcd"),
+        ),
+        row("compression ratio, %", q("compression_ratio", 100)),
+        row(
+            "compression < 30 / 30-60 / > 60 %, % of breasts",
+            lambda st: " / ".join(f"{100 * v:.0f}" for v in st["compression_ratio_share"].values()),
+        ),
+        row("compressed thickness, mm", q("compressed_thickness_mm")),
+        "",
+        "| meshes | value |",
+        "| --- | --- |",
+        f"| breasts meshed / failed | {report['n_breasts_finished']} / {len(report['failures'])} |",
+        f"| tetrahedra per mesh: min / median / max | {report['elements']['min']} / "
+        f"{report['elements']['median']:.0f} / {report['elements']['max']} |",
+        f"| mesh vs segmented volume: min / max error | {100 * report['volume_error']['min']:+.2f} % / "
+        f"{100 * report['volume_error']['max']:+.2f} % |",
+        f"| inverted tetrahedra | {report['n_inverted']} |",
+        f"| worst radius ratio (normalised, 1 = regular) | {report['worst_quality']['min_radius_ratio']:.3f} "
+        f"({report['worst_quality']['breast']}) |",
+        f"| dihedral angles over the cohort | {report['min_dihedral_deg']:.1f}-{report['max_dihedral_deg']:.1f} deg |",
+        f"| surface nodes' distance from the segmented surface | median over breasts of the 95th percentile "
+        f"{report['surface_distance_mm']['median_p95']:.2f} mm, max {report['surface_distance_mm']['max']:.1f} mm |",
+        f"| CPU time per breast (phantom + mesh + files + PNG) | {report['seconds_per_breast_cpu']:.2f} s |",
+    ]
+    return "\n".join(lines) + "\n"
 
 
 def site_statistics(rows: list[dict]) -> dict:

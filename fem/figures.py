@@ -179,15 +179,19 @@ def cohort_summary_png(rows: Sequence[dict], path: str | Path) -> Path:
     sites = sorted({r["site"] for r in rows})
     fig, axes = plt.subplots(2, 2, figsize=(11, 7.5))
     for ax, (label, get, bins) in zip(axes.ravel(), panels, strict=True):
-        data = [[get(r) for r in rows if r["site"] == s] for s in sites]
-        ax.hist(
-            data,
-            bins=bins,
-            stacked=True,
-            label=[f"site {s} ({len(d)} breasts)" for s, d in zip(sites, data, strict=True)],
-        )
+        for s in sites:
+            data = [get(r) for r in rows if r["site"] == s]
+            weights = np.full(len(data), 100.0 / len(data))
+            ax.hist(
+                data,
+                bins=bins,
+                weights=weights,
+                histtype="step",
+                lw=1.8,
+                label=f"site {s} ({len(data)} breasts)",
+            )
         ax.set_xlabel(label)
-        ax.set_ylabel("breasts")
+        ax.set_ylabel("% of the site's breasts")
         if "glandular" in label:
             for x in (3.5, 7.5, 15.5):
                 ax.axvline(x, color="k", lw=0.8, ls="--")

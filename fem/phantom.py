@@ -159,6 +159,13 @@ def _truncated_normal(
             return float(x)
 
 
+def _reflect(x: float, lo: float, hi: float) -> float:
+    """Fold ``x`` into ``[lo, hi]`` by mirroring at the bounds (clipping would pile values up there)."""
+    w = hi - lo
+    y = (x - lo) % (2 * w)
+    return float(lo + (y if y <= w else 2 * w - y))
+
+
 def profile_area_factor(q: float) -> float:
     """``C(q) = pi * int_0^1 (1 - t^q)^(2/q) dt``: breast volume / (a_u a_w p)."""
     val, _ = integrate.quad(lambda t: (1.0 - t**q) ** (2.0 / q), 0.0, 1.0)
@@ -235,7 +242,7 @@ class PhantomGenerator:
         w_factor = 1.0 + 0.5 * sum(a * a for a, _ in ripple)  # mean of (1 + ripple)^2
         a_u = (volume * 1e3 / (aspect * proj_ratio * profile_area_factor(q) * w_factor)) ** (1 / 3)
         lo, hi = DENSITY_RANGES[pat["density_category"]]
-        gland = float(np.clip(pat["glandular_fraction"] * np.exp(rng.normal(0.0, 0.08)), lo, hi))
+        gland = _reflect(pat["glandular_fraction"] * np.exp(rng.normal(0.0, 0.08)), lo, hi)
         return BreastShape(
             laterality=laterality,
             target_volume_cm3=volume,

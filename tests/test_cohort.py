@@ -31,7 +31,11 @@ def test_outputs(cohort_dir):
     names = sorted(p.name for p in cohort_dir.iterdir() if p.is_file())
     for b in ("P0000_L", "P0000_R", "P0001_L", "P0001_R"):
         assert {f"{b}.npz", f"{b}.vtu", f"{b}.png"} <= set(names)
-    assert {"cohort.csv", "cohort.json", "cohort_summary.png"} <= set(names)
+    assert {"cohort.csv", "cohort.json", "cohort_summary.png", "cohort_summary.md"} <= set(names)
+    assert (
+        "| tetrahedra per mesh: min / median / max |"
+        in (cohort_dir / "cohort_summary.md").read_text()
+    )
     assert not [n for n in names if n.startswith(".")]  # no temporary files left
     vtu = meshio.read(cohort_dir / "P0000_L.vtu")
     assert "tissue" in vtu.cell_data and "tissue_code" in vtu.point_data
