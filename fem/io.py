@@ -242,6 +242,17 @@ def _tissue_from_sets(
     return tissue
 
 
+def is_segmentation(path: str | Path) -> bool:
+    """Whether ``path`` names a label volume (to be meshed) rather than a mesh or trajectory."""
+    path = Path(path)
+    if _suffix(path) not in SEGMENTATION_SUFFIXES:
+        return False
+    if _suffix(path) == ".npz" and path.is_file():
+        with np.load(path, allow_pickle=False) as z:
+            return "schema_version" not in z
+    return True
+
+
 def load_breast(
     path: str | Path,
     label_map: Mapping[str, int | Sequence[int]] | None = None,
@@ -251,15 +262,12 @@ def load_breast(
 ) -> Trajectory:
     """A user's breast as a mesh: segmentations are meshed, meshes are used as is."""
     path = Path(path)
-    suffix = _suffix(path)
-    if suffix == ".npz" and path.is_file():
-        with np.load(path, allow_pickle=False) as z:
-            if "schema_version" in z:
-                return Trajectory.load(path)
-    if suffix in SEGMENTATION_SUFFIXES:
+    if is_segmentation(path):
         volume = read_segmentation(path, label_map, spacing)
         return (mesher or Mesher())(volume, {"source": str(path)})
-    return read_mesh(path, tissue_field, None if label_map is None else label_map)
+    if _suffix(path) == ".npz":
+        return Trajectory.load(path)
+    return read_mesh(path, tissue_field, label_map)
 
 
 def to_meshio(traj: Trajectory) -> meshio.Mesh:

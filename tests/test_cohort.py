@@ -69,3 +69,38 @@ def test_failed_breast_reported_not_written(tmp_path):
     assert len(report["failures"]) == 2
     assert "no lattice spacing gave 2250 +- 0 elements" in report["failures"][0]["reason"]
     assert not list(tmp_path.glob("P*.npz"))
+
+
+def test_mesh_breast_command(tmp_path, ellipsoid_volume):
+    """A user's NIfTI with its own label values, meshed through the Hydra config."""
+    import nibabel
+
+    from fem.mesh_breast import mesh_breast
+
+    data = ellipsoid_volume.labels.astype(np.int16) * 10  # fat 10, gland 20, muscle 30
+    nibabel.save(nibabel.Nifti1Image(data, ellipsoid_volume.affine), str(tmp_path / "case.nii.gz"))
+    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
+        cfg = compose(
+            "mesh_breast",
+            overrides=[
+                f"input={tmp_path / 'case.nii.gz'}",
+                "label_map.fat=10",
+                "label_map.gland=[20]",
+                "label_map.muscle=30",
+                "mesher.target_elements=900",
+                "mesher.tolerance=150",
+            ],
+        )
+    stem = mesh_breast(cfg)
+    assert stem == tmp_path / "case"
+    traj = Trajectory.load(tmp_path / "case.npz")
+    assert 750 <= traj.n_cells <= 1050 and set(np.unique(traj.tissue)) == {1, 2, 3}
+    assert (tmp_path / "case.vtu").is_file() and (tmp_path / "case.png").is_file()
+    # The written mesh is itself a valid input, used as is.
+    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
+        cfg = compose(
+            "mesh_breast",
+            overrides=[f"input={tmp_path / 'case.vtu'}", f"output={tmp_path / 'again'}"],
+        )
+    mesh_breast(cfg)
+    np.testing.assert_array_equal(Trajectory.load(tmp_path / "again.npz").cells, traj.cells)
