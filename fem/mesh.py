@@ -175,7 +175,8 @@ def _largest_component(cells: NDArray) -> NDArray[np.int64]:
     return cells[comp == np.bincount(comp).argmax()]
 
 
-def _compact(points: NDArray, cells: NDArray) -> tuple[NDArray, NDArray]:
+def compact_mesh(points: NDArray, cells: NDArray) -> tuple[NDArray, NDArray]:
+    """Drop the nodes no cell uses and renumber the cells, keeping node order."""
     used, inv = np.unique(cells, return_inverse=True)
     return points[used], inv.reshape(cells.shape).astype(np.int64)
 
@@ -496,7 +497,7 @@ class Mesher:
         keep = phi(points[cells].mean(1)) < 0
         if not keep.any():
             return points[:0], cells[:0]
-        points, cells = _compact(points, _largest_component(cells[keep]))
+        points, cells = compact_mesh(points, _largest_component(cells[keep]))
         faces, _ = boundary_faces(points, cells)
         surface = np.unique(faces)
         snapped = snap_to_surface(
@@ -510,7 +511,7 @@ class Mesher:
         if flat.any():
             kept = _largest_component(cells[~flat])
             used = np.unique(kept)
-            snapped, cells = _compact(snapped, kept)
+            snapped, cells = compact_mesh(snapped, kept)
             surface = np.flatnonzero(on_surface[used])
         # Flat triangles inscribed in a convex surface lose volume (the chord sagitta, about
         # h^2 / 8R): snap once more to the level set offset by the mean missing thickness.

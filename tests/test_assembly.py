@@ -1,0 +1,73 @@
+"""The element kernel: derivatives, the scikit-fem reference, patch test, rigid motion."""
+
+import numpy as np
+import pytest
+
+from fem.assembly import HyperelasticBody, skfem_tangent
+from fem.material import lame_parameters, neo_hookean_pk1
+from fem.mesh import bcc_lattice, boundary_faces, compact_mesh
+
+
+@pytest.fixture(scope="module")
+def block():
+    points, cells = bcc_lattice(np.zeros(3), np.full(3, 20.0), 5.0)
+    points, cells = compact_mesh(points, cells)
+    mu, kappa = lame_parameters(np.where(np.arange(len(cells)) % 3 == 0, 2500.0, 1100.0), 0.495)
+    return points, cells, mu, kappa
+
+
+@pytest.mark.parametrize("averaging", ["element", "nodal"])
+def test_force_and_tangent_are_derivatives(block, averaging):
+    points, cells, mu, kappa = block
+    body = HyperelasticBody(points, cells, mu, kappa, averaging=averaging)
+    rng = np.random.default_rng(0)
+    x = points + 0.4 * rng.standard_normal(points.shape)
+    d = rng.standard_normal(points.shape)
+    eps = 1e-6
+    dW = (body.energy(x + eps * d) - body.energy(x - eps * d)) / (2 * eps)
+    assert body.internal_force(x) @ d.ravel() == pytest.approx(dW, rel=1e-6)
+    df = (body.internal_force(x + eps * d) - body.internal_force(x - eps * d)) / (2 * eps)
+    K = body.tangent(x)
+    np.testing.assert_allclose(K @ d.ravel(), df, atol=1e-6 * np.abs(df).max())
+    assert abs(K - K.T).max() < 1e-9 * abs(K).max()
+
+
+def test_fast_kernel_equals_scikit_fem(block):
+    points, cells, mu, kappa = block
+    body = HyperelasticBody(points, cells, mu, kappa, averaging="element")
+    x = points + 0.3 * np.random.default_rng(2).standard_normal(points.shape)
+    K, K_ref = body.tangent(x), skfem_tangent(body, x)
+    assert abs(K - K_ref).max() <= 1e-12 * abs(K_ref).max()
+
+
+@pytest.mark.parametrize("averaging", ["element", "nodal"])
+def test_patch_test_homogeneous_deformation(block, averaging):
+    """An affine deformation gives equal stress everywhere: interior nodes are in equilibrium
+    and the boundary forces equal the exact traction resultants P N A."""
+    points, cells, _, _ = block
+    body = HyperelasticBody(points, cells, 1100.0 / 2.99, 1100.0 / 0.03, averaging=averaging)
+    F = np.array([[1.1, 0.2, 0.0], [0.0, 0.9, 0.05], [0.1, 0.0, 1.05]])
+    f = body.internal_force(points @ F.T).reshape(-1, 3)
+    faces, _ = boundary_faces(points, cells)
+    interior = np.setdiff1d(np.arange(len(points)), faces)
+    assert interior.size > 10
+    assert np.abs(f[interior]).max() < 1e-8 * np.abs(f).max()
+    # Boundary nodes carry the traction resultants: a third of P N A of each boundary triangle.
+    P = neo_hookean_pk1(F, 1100.0 / 2.99, 1100.0 / 0.03)
+    p = points[faces]
+    area_normal = 0.5 * np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    expected = np.zeros_like(f)
+    for k in range(3):
+        np.add.at(expected, faces[:, k], area_normal @ P.T / 3.0)
+    np.testing.assert_allclose(f, expected, atol=1e-8 * np.abs(f).max())
+
+
+@pytest.mark.parametrize("averaging", ["element", "nodal"])
+def test_rigid_rotation_gives_zero_force(block, averaging):
+    points, cells, mu, kappa = block
+    body = HyperelasticBody(points, cells, mu, kappa, averaging=averaging)
+    a = 0.9
+    R = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+    x = points @ R.T + np.array([3.0, -2.0, 1.0])
+    assert body.energy(x) == pytest.approx(0, abs=1e-6)
+    assert np.abs(body.internal_force(x)).max() < 1e-8
