@@ -1,0 +1,177 @@
+"""Quasi-static equilibrium: Newton's method with a safeguarded line search, and load ramps.
+
+Equilibrium minimises the potential ``Pi(x) = W(x) - f_ext . x`` over the free degrees of
+freedom. Each Newton step solves ``K dx = -r`` on the free DOFs; the line search halves the
+step until no element is inverted and the potential decreases (Armijo). A load ramp raises
+the load factor in increments, halving an increment whose Newton iteration fails and growing
+it again after easy steps, and records the positions at the requested load factors.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.sparse.linalg import spsolve
+
+from fem.assembly import HyperelasticBody, deformation_gradient
+
+#: Body force of gravity for water-like tissue: rho g = 1000 kg/m^3 * 9.81 m/s^2 = 9.81e-6 N/mm^3,
+#: i.e. 9.81 in the solver's force unit (Pa mm^2 = 1e-6 N) per mm^3.
+GRAVITY_FORCE_DENSITY = 9.81
+
+
+class SolverError(RuntimeError):
+    """Newton or the load ramp failed; the message says where and why."""
+
+
+def nodal_body_force(body: HyperelasticBody, force_density: NDArray) -> NDArray[np.float64]:
+    """Consistent nodal forces of a uniform body force (a quarter of each element to each node).
+
+    Parameters
+    ----------
+    force_density : (3,) float
+        Force per reference volume, Pa/mm (e.g. ``GRAVITY_FORCE_DENSITY * direction``).
+
+    Returns
+    -------
+    (3N,) float64
+    """
+    f = np.zeros((len(body.points), 3))
+    np.add.at(
+        f, body.cells.ravel(), np.repeat(body.volumes / 4.0, 4)[:, None] * np.asarray(force_density)
+    )
+    return f.ravel()
+
+
+@dataclass(frozen=True)
+class NewtonSettings:
+    """Convergence and safeguard settings.
+
+    Parameters
+    ----------
+    tolerance : float
+        Converged when ``|r_free| <= tolerance * max(|f_ext|, |f_int|)``.
+    max_iterations : int
+        Newton iterations per load increment.
+    min_step : float
+        Smallest line-search step before the increment is declared failed.
+    min_jacobian : float
+        Elements with ``det F`` below this count as inverted.
+    """
+
+    tolerance: float = 1e-8
+    max_iterations: int = 25
+    min_step: float = 1.0 / 64
+    min_jacobian: float = 1e-3
+
+
+def newton(
+    body: HyperelasticBody,
+    x: NDArray,
+    free: NDArray[np.bool_],
+    f_ext: NDArray,
+    settings: NewtonSettings = NewtonSettings(),
+) -> tuple[NDArray[np.float64], int]:
+    """Equilibrium positions from the start ``x`` (N, 3); fixed DOFs keep their values.
+
+    Returns
+    -------
+    x : (N, 3) float64
+    iterations : int
+
+    Raises
+    ------
+    SolverError
+        No convergence, or the line search could not find an admissible descent step.
+    """
+    x = np.array(x, float)
+    flat = x.reshape(-1)
+
+    def potential(y: NDArray) -> float:
+        return body.energy(y) - f_ext @ y.reshape(-1)
+
+    def admissible(y: NDArray) -> bool:
+        return bool(
+            np.linalg.det(deformation_gradient(y, body.cells, body.grads)).min()
+            > settings.min_jacobian
+        )
+
+    pi = potential(x)
+    for it in range(settings.max_iterations):
+        f_int = body.internal_force(x)
+        r = (f_int - f_ext)[free]
+        scale = max(np.linalg.norm(f_ext[free]), np.linalg.norm(f_int[free]), 1e-30)
+        if np.linalg.norm(r) <= settings.tolerance * scale:
+            return x, it
+        K = body.tangent(x)[free][:, free]
+        dx = spsolve(K.tocsc(), -r)
+        slope = r @ dx
+        step = 1.0
+        while True:
+            trial = flat.copy()
+            trial[free] += step * dx
+            trial = trial.reshape(x.shape)
+            if admissible(trial):
+                pi_trial = potential(trial)
+                if pi_trial <= pi + 1e-4 * step * slope + 1e-12 * abs(pi):
+                    break
+            step *= 0.5
+            if step < settings.min_step:
+                raise SolverError(
+                    f"line search failed at Newton iteration {it} (|r| = {np.linalg.norm(r):.3g})"
+                )
+        x, pi = trial, pi_trial
+        flat = x.reshape(-1)
+    raise SolverError(f"Newton did not converge in {settings.max_iterations} iterations")
+
+
+def load_ramp(
+    body: HyperelasticBody,
+    x0: NDArray,
+    free: NDArray[np.bool_],
+    load: Callable[[float], NDArray],
+    record: Sequence[float],
+    settings: NewtonSettings = NewtonSettings(),
+    max_cutbacks: int = 10,
+) -> NDArray[np.float64]:
+    """Follow the equilibrium path from load factor 0 to ``max(record)``.
+
+    Parameters
+    ----------
+    load : callable
+        Load factor -> external force vector (3N,).
+    record : sequence of float
+        Increasing load factors at which the positions are recorded (each one is reached
+        exactly; increments between them adapt).
+
+    Returns
+    -------
+    (len(record), N, 3) float64
+        Positions at the recorded load factors.
+    """
+    x = np.array(x0, float)
+    lam, increment = 0.0, float(record[0])
+    out = []
+    for target in record:
+        cutbacks = 0
+        while lam < target - 1e-12:
+            nxt = min(lam + increment, target)
+            try:
+                x_new, iterations = newton(body, x, free, load(nxt), settings)
+            except SolverError as exc:
+                cutbacks += 1
+                increment *= 0.5
+                if cutbacks > max_cutbacks:
+                    raise SolverError(
+                        f"load factor {nxt:.4g}: {exc}; gave up after {max_cutbacks} cutbacks"
+                    ) from exc
+                continue
+            x, lam = x_new, nxt
+            if iterations <= 4:
+                increment *= 1.5
+        out.append(x.copy())
+        increment = max(increment, 1e-3)
+    return np.stack(out)

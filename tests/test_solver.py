@@ -1,0 +1,87 @@
+"""Newton and load ramps: body force against closed forms, constraints, failure reporting."""
+
+import numpy as np
+import pytest
+import skfem
+
+from fem.assembly import HyperelasticBody
+from fem.material import lame_parameters, neo_hookean_pk1
+from fem.quality import signed_volume
+from fem.solver import (
+    GRAVITY_FORCE_DENSITY,
+    NewtonSettings,
+    SolverError,
+    load_ramp,
+    newton,
+    nodal_body_force,
+)
+
+MU, KAPPA = lame_parameters(1100.0, 0.495)
+
+
+def column(height: float, n_z: int):
+    """A 20 x 20 mm column of structured tetrahedra along z, on a roller at z = 0."""
+    m = skfem.MeshTet.init_tensor(
+        np.linspace(0, 20, 5), np.linspace(0, 20, 5), np.linspace(0, height, n_z)
+    )
+    p, t = m.p.T.copy(), m.t.T.copy()
+    neg = signed_volume(p, t) < 0
+    t[neg] = t[neg][:, [0, 2, 1, 3]]
+    free = np.ones_like(p, bool)
+    bottom = np.isclose(p[:, 2], 0)
+    free[bottom, 2] = False
+    corner = np.flatnonzero(bottom & np.isclose(p[:, 0], 0) & np.isclose(p[:, 1], 0))[0]
+    side = np.flatnonzero(bottom & np.isclose(p[:, 0], 20) & np.isclose(p[:, 1], 0))[0]
+    free[corner, :2] = False  # rigid-body pins: they carry no load under a vertical body force
+    free[side, 1] = False
+    return p, t, free.ravel()
+
+
+@pytest.mark.parametrize("averaging", ["element", "nodal"])
+def test_self_weight_small_load_matches_linear_closed_form(averaging):
+    p, t, free = column(100.0, 21)
+    body = HyperelasticBody(p, t, MU, KAPPA, averaging=averaging)
+    weight = 0.01 * GRAVITY_FORCE_DENSITY
+    f = nodal_body_force(body, np.array([0, 0, -weight]))
+    x = load_ramp(body, p, free, lambda s: s * f, [1.0])[-1]
+    top = np.isclose(p[:, 2], 100)
+    assert (x - p)[top, 2].mean() == pytest.approx(-weight * 100**2 / (2 * 1100.0), rel=0.015)
+
+
+def test_self_weight_finite_strain_matches_uniaxial_integral():
+    """Full gravity on a 30 mm column (27 % strain at its foot): the top displacement equals
+    the integral of the uniaxial stretch under the weight above, int_0^L (lambda(Z) - 1) dZ."""
+    from scipy.optimize import brentq
+
+    height = 30.0
+    p, t, free = column(height, 13)
+    body = HyperelasticBody(p, t, MU, KAPPA)
+    f = nodal_body_force(body, np.array([0, 0, -GRAVITY_FORCE_DENSITY]))
+    x = load_ramp(body, p, free, lambda s: s * f, [0.5, 1.0])[-1]
+
+    def stretch(nominal: float) -> float:
+        def lateral(l):
+            return brentq(lambda a: neo_hookean_pk1(np.diag([a, a, l]), MU, KAPPA)[0, 0], 0.3, 3.0)
+
+        return brentq(
+            lambda l: (
+                neo_hookean_pk1(np.diag([lateral(l), lateral(l), l]), MU, KAPPA)[2, 2] - nominal
+            ),
+            0.3,
+            1.05,
+        )
+
+    z = np.linspace(0, height, 61)
+    lam = np.array([stretch(-GRAVITY_FORCE_DENSITY * (height - zz)) for zz in z])
+    expected = np.trapezoid(lam - 1, z)
+    top = np.isclose(p[:, 2], height)
+    assert (x - p)[top, 2].mean() == pytest.approx(expected, rel=0.03)
+    assert signed_volume(x, t).sum() == pytest.approx(signed_volume(p, t).sum(), rel=0.01)
+
+
+def test_newton_reports_failure():
+    p, t, free = column(100.0, 21)
+    body = HyperelasticBody(p, t, MU, KAPPA)
+    f = nodal_body_force(body, np.array([0, 0, -1e3 * GRAVITY_FORCE_DENSITY]))
+    with pytest.raises(SolverError, match=r"line search failed|did not converge"):
+        newton(body, p, free, f, NewtonSettings(max_iterations=3))
