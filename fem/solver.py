@@ -68,12 +68,16 @@ class NewtonSettings:
     min_jacobian: float = 1e-3
 
 
+#: Default settings, shared (the dataclass is frozen).
+DEFAULT_NEWTON = NewtonSettings()
+
+
 def newton(
     body: HyperelasticBody,
     x: NDArray,
     free: NDArray[np.bool_],
     f_ext: NDArray,
-    settings: NewtonSettings = NewtonSettings(),
+    settings: NewtonSettings = DEFAULT_NEWTON,
 ) -> tuple[NDArray[np.float64], int]:
     """Equilibrium positions from the start ``x`` (N, 3); fixed DOFs keep their values.
 
@@ -134,7 +138,7 @@ def load_ramp(
     free: NDArray[np.bool_],
     load: Callable[[float], NDArray],
     record: Sequence[float],
-    settings: NewtonSettings = NewtonSettings(),
+    settings: NewtonSettings = DEFAULT_NEWTON,
     max_cutbacks: int = 10,
 ) -> NDArray[np.float64]:
     """Follow the equilibrium path from load factor 0 to ``max(record)``.

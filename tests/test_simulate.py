@@ -1,0 +1,63 @@
+"""Step 1 (unloaded state) on a phantom breast, and its input errors."""
+
+import numpy as np
+import pytest
+
+from fem.quality import signed_volume
+from fem.simulate import (
+    PAPER_MATERIALS,
+    Material,
+    chest_wall_free_dofs,
+    element_moduli,
+    unloaded_state,
+)
+from fem.trajectory import NodeFlag, Tissue
+
+
+@pytest.fixture(scope="module")
+def unloaded(breast_mesh):
+    return unloaded_state(breast_mesh, n_steps=4)
+
+
+def test_unloaded_state_physics(breast_mesh, unloaded):
+    assert unloaded.shape == (4, breast_mesh.n_nodes, 3)
+    u = unloaded - breast_mesh.points
+    interface = breast_mesh.flagged(NodeFlag.MUSCLE_INTERFACE)
+    np.testing.assert_allclose(u[:, interface, 1], 0, atol=1e-12)  # fixed anteroposteriorly
+    # Removing the prone (anterior) gravity moves the breast posteriorly, more at each step.
+    front = breast_mesh.points[:, 1] > np.percentile(breast_mesh.points[:, 1], 90)
+    sag = -u[:, front, 1].mean(axis=1)
+    assert np.all(np.diff(sag) > 0) and sag[-1] > 1.0
+    # Nearly incompressible: the volume changes by less than 1 %, no element inverts.
+    vol = signed_volume(unloaded[-1], breast_mesh.cells)
+    assert vol.min() > 0
+    assert vol.sum() == pytest.approx(
+        signed_volume(breast_mesh.points, breast_mesh.cells).sum(), rel=0.01
+    )
+
+
+def test_nodal_averaging_is_softer_than_locking_p1(breast_mesh, unloaded):
+    plain = unloaded_state(breast_mesh, n_steps=1, averaging="element")
+    sag_nodal = np.linalg.norm(unloaded[-1] - breast_mesh.points, axis=1).max()
+    sag_p1 = np.linalg.norm(plain[-1] - breast_mesh.points, axis=1).max()
+    assert sag_nodal > 1.1 * sag_p1
+
+
+def test_tissue_without_material(breast_mesh):
+    materials = {k: v for k, v in PAPER_MATERIALS.items() if k != "gland"}
+    if not (breast_mesh.tissue == Tissue.GLAND).any():
+        pytest.skip("phantom without gland elements")
+    with pytest.raises(ValueError, match=r"tissue 'gland' .* has no material parameters"):
+        element_moduli(breast_mesh.tissue, materials, "b.vtu")
+    mu, kappa = element_moduli(breast_mesh.tissue, {**materials, "gland": Material(2500.0)})
+    np.testing.assert_allclose(kappa / mu, 2 * 1.495 / (3 * 0.01))  # K / mu at nu = 0.495
+
+
+def test_mesh_without_interface_nodes(breast_mesh):
+    from dataclasses import replace
+
+    no_muscle = replace(
+        breast_mesh, node_flags=breast_mesh.node_flags & ~np.uint8(NodeFlag.MUSCLE_INTERFACE)
+    )
+    with pytest.raises(ValueError, match=r"b\.vtu: no muscle/breast interface nodes"):
+        chest_wall_free_dofs(no_muscle, "b.vtu")
