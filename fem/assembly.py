@@ -162,6 +162,10 @@ class HyperelasticBody:
         Jbar = (self.S @ J) / self.patch_volume
         return F, J, Jbar
 
+    def min_jacobian(self, x: NDArray) -> float:
+        """Smallest ``det F`` over the elements (<= 0: an element is inverted)."""
+        return float(np.linalg.det(deformation_gradient(x, self.cells, self.grads)).min())
+
     def energy(self, x: NDArray) -> float:
         """Strain energy at node positions ``x`` (N, 3), Pa mm^3."""
         F, _, Jbar = self._volumetric(x)
@@ -195,6 +199,35 @@ class HyperelasticBody:
         B = sparse.diags(1.0 / self.patch_volume) @ self.S @ G
         c = self.patch_volume * volumetric_stiffness(Jbar, self.patch_kappa)
         return (K + B.T @ sparse.diags(c) @ B).tocsr()
+
+
+@dataclass
+class Model:
+    """A solid body plus surface parts (the skin membrane): energies, forces and tangents add."""
+
+    body: HyperelasticBody
+    parts: tuple = ()
+
+    @property
+    def cells(self) -> NDArray:
+        return self.body.cells
+
+    def min_jacobian(self, x: NDArray) -> float:
+        return self.body.min_jacobian(x)
+
+    def energy(self, x: NDArray) -> float:
+        return self.body.energy(x) + sum(p.energy(x) for p in self.parts)
+
+    def internal_force(self, x: NDArray) -> NDArray[np.float64]:
+        return self.body.internal_force(x) + sum(
+            (p.internal_force(x) for p in self.parts), start=0.0
+        )
+
+    def tangent(self, x: NDArray) -> sparse.csr_matrix:
+        K = self.body.tangent(x)
+        for p in self.parts:
+            K = K + p.tangent(x)
+        return K.tocsr()
 
 
 def skfem_tangent(body: HyperelasticBody, x: NDArray) -> sparse.csr_matrix:

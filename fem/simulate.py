@@ -1,5 +1,8 @@
 """FE simulation steps of the reference paper (section 2.1) on a `Trajectory` mesh.
 
+The breast model is the tissue body (decoupled neo-Hookean tetrahedra with nodal volumetric
+averaging) plus the skin, a 2 mm incompressible neo-Hookean membrane on the outer surface.
+
 Step 1, the unloaded state: the breast was imaged prone, hanging anteriorly under gravity; a
 body force ``rho g`` pointing posteriorly (-y in RAS+) removes that load, ramped in recorded
 steps. The nodes of the muscle/breast interface are fixed in the anteroposterior direction
@@ -17,8 +20,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from fem.assembly import HyperelasticBody
+from fem.assembly import HyperelasticBody, Model
 from fem.material import lame_parameters
+from fem.membrane import SkinMembrane
 from fem.solver import (
     DEFAULT_NEWTON,
     GRAVITY_FORCE_DENSITY,
@@ -44,7 +48,11 @@ PAPER_MATERIALS: dict[str, Material] = {
     "fat": Material(1100.0),
     "gland": Material(2500.0),
     "muscle": Material(6000.0),
+    "skin": Material(1000.0),
 }
+
+#: Thickness of the skin membrane, mm (the paper's 2 mm membrane elements).
+SKIN_THICKNESS = 2.0
 
 
 def element_moduli(
@@ -115,12 +123,24 @@ def unloaded_state(
     (n_steps, N, 3) float64
         Node positions, mm, at load factors ``1/n_steps, 2/n_steps, ..., 1``.
     """
+    model = breast_model(traj, materials, averaging)
+    free = chest_wall_free_dofs(traj, str(traj.metadata.get("source", "mesh"))).ravel()
+    direction = np.zeros(3)
+    direction[AP_AXIS] = -1.0  # posterior: undo the anterior pull of prone gravity
+    f = nodal_body_force(model.body, force_density * direction)
+    record = np.arange(1, n_steps + 1) / n_steps
+    return load_ramp(model, traj.points, free, lambda s: s * f, record, settings)
+
+
+def breast_model(
+    traj: Trajectory, materials: Mapping[str, Material], averaging: str = "nodal"
+) -> Model:
+    """The tissue body and, when ``materials`` has ``"skin"``, the skin membrane on ``traj.skin``."""
     source = str(traj.metadata.get("source", "mesh"))
     mu, kappa = element_moduli(traj.tissue, materials, source)
     body = HyperelasticBody(traj.points, traj.cells, mu, kappa, averaging=averaging)
-    free = chest_wall_free_dofs(traj, source).ravel()
-    direction = np.zeros(3)
-    direction[AP_AXIS] = -1.0  # posterior: undo the anterior pull of prone gravity
-    f = nodal_body_force(body, force_density * direction)
-    record = np.arange(1, n_steps + 1) / n_steps
-    return load_ramp(body, traj.points, free, lambda s: s * f, record, settings)
+    parts = ()
+    if "skin" in materials and len(traj.skin):
+        skin_mu, _ = lame_parameters(materials["skin"].young, materials["skin"].poisson)
+        parts = (SkinMembrane(traj.points, traj.skin, float(skin_mu), SKIN_THICKNESS),)
+    return Model(body, parts)

@@ -16,7 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.sparse.linalg import spsolve
 
-from fem.assembly import HyperelasticBody, deformation_gradient
+from fem.assembly import HyperelasticBody, Model
 
 #: Body force of gravity for water-like tissue: rho g = 1000 kg/m^3 * 9.81 m/s^2 = 9.81e-6 N/mm^3,
 #: i.e. 9.81 in the solver's force unit (Pa mm^2 = 1e-6 N) per mm^3.
@@ -73,7 +73,7 @@ DEFAULT_NEWTON = NewtonSettings()
 
 
 def newton(
-    body: HyperelasticBody,
+    body: HyperelasticBody | Model,
     x: NDArray,
     free: NDArray[np.bool_],
     f_ext: NDArray,
@@ -98,10 +98,7 @@ def newton(
         return body.energy(y) - f_ext @ y.reshape(-1)
 
     def admissible(y: NDArray) -> bool:
-        return bool(
-            np.linalg.det(deformation_gradient(y, body.cells, body.grads)).min()
-            > settings.min_jacobian
-        )
+        return body.min_jacobian(y) > settings.min_jacobian
 
     pi = potential(x)
     for it in range(settings.max_iterations):
@@ -133,7 +130,7 @@ def newton(
 
 
 def load_ramp(
-    body: HyperelasticBody,
+    body: HyperelasticBody | Model,
     x0: NDArray,
     free: NDArray[np.bool_],
     load: Callable[[float], NDArray],

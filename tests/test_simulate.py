@@ -61,3 +61,9 @@ def test_mesh_without_interface_nodes(breast_mesh):
     )
     with pytest.raises(ValueError, match=r"b\.vtu: no muscle/breast interface nodes"):
         chest_wall_free_dofs(no_muscle, "b.vtu")
+
+
+def test_skin_membrane_stiffens_the_breast(breast_mesh, unloaded):
+    bare = unloaded_state(breast_mesh, {k: v for k, v in PAPER_MATERIALS.items() if k != "skin"}, n_steps=1)
+    with_skin = np.linalg.norm(unloaded[-1] - breast_mesh.points, axis=1).max()
+    assert with_skin < np.linalg.norm(bare[-1] - breast_mesh.points, axis=1).max()
