@@ -14,7 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.sparse.linalg import spsolve
+from scipy import sparse
+from scipy.sparse.linalg import LinearOperator, cg, splu
 
 from fem.assembly import HyperelasticBody, Model
 
@@ -68,6 +69,32 @@ class NewtonSettings:
     min_jacobian: float = 1e-3
 
 
+class ReusedFactorization:
+    """Linear solves that reuse one sparse LU factorization across Newton iterations and steps.
+
+    The stored factorization preconditions a conjugate-gradient solve of the current tangent;
+    when CG does not reach ``rtol`` within ``max_iterations`` (the tangent has drifted), the
+    current tangent is factorized afresh (SuperLU, minimum-degree ordering on K + K^T) and
+    solved directly. Over a load ramp this factorizes a handful of times instead of once per
+    Newton iteration.
+    """
+
+    def __init__(self, rtol: float = 1e-10, max_iterations: int = 30) -> None:
+        self.rtol, self.max_iterations = rtol, max_iterations
+        self.lu = None
+        self.factorizations = 0
+
+    def solve(self, K: sparse.spmatrix, b: NDArray) -> NDArray[np.float64]:
+        if self.lu is not None and self.lu.shape == K.shape:
+            M = LinearOperator(K.shape, self.lu.solve, dtype=float)
+            x, info = cg(K, b, rtol=self.rtol, maxiter=self.max_iterations, M=M)
+            if info == 0:
+                return x
+        self.lu = splu(K.tocsc(), permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True})
+        self.factorizations += 1
+        return self.lu.solve(b)
+
+
 #: Default settings, shared (the dataclass is frozen).
 DEFAULT_NEWTON = NewtonSettings()
 
@@ -78,6 +105,7 @@ def newton(
     free: NDArray[np.bool_],
     f_ext: NDArray,
     settings: NewtonSettings = DEFAULT_NEWTON,
+    linear: ReusedFactorization | None = None,
 ) -> tuple[NDArray[np.float64], int]:
     """Equilibrium positions from the start ``x`` (N, 3); fixed DOFs keep their values.
 
@@ -93,6 +121,7 @@ def newton(
     """
     x = np.array(x, float)
     flat = x.reshape(-1)
+    linear = linear or ReusedFactorization()
 
     def potential(y: NDArray) -> float:
         return body.energy(y) - f_ext @ y.reshape(-1)
@@ -108,7 +137,7 @@ def newton(
         if np.linalg.norm(r) <= settings.tolerance * scale:
             return x, it
         K = body.tangent(x)[free][:, free]
-        dx = spsolve(K.tocsc(), -r)
+        dx = linear.solve(K, -r)
         slope = r @ dx
         step = 1.0
         while True:
@@ -155,13 +184,18 @@ def load_ramp(
     """
     x = np.array(x0, float)
     lam, increment = 0.0, float(record[0])
+    velocity = np.zeros_like(x)  # dx/dlambda of the last increment: the predictor
+    linear = ReusedFactorization()
     out = []
     for target in record:
         cutbacks = 0
         while lam < target - 1e-12:
             nxt = min(lam + increment, target)
+            guess = x + (nxt - lam) * velocity
+            if body.min_jacobian(guess) <= settings.min_jacobian:
+                guess = x
             try:
-                x_new, iterations = newton(body, x, free, load(nxt), settings)
+                x_new, iterations = newton(body, guess, free, load(nxt), settings, linear)
             except SolverError as exc:
                 cutbacks += 1
                 increment *= 0.5
@@ -170,6 +204,7 @@ def load_ramp(
                         f"load factor {nxt:.4g}: {exc}; gave up after {max_cutbacks} cutbacks"
                     ) from exc
                 continue
+            velocity = (x_new - x) / (nxt - lam)
             x, lam = x_new, nxt
             if iterations <= 4:
                 increment *= 1.5

@@ -64,6 +64,8 @@ def test_mesh_without_interface_nodes(breast_mesh):
 
 
 def test_skin_membrane_stiffens_the_breast(breast_mesh, unloaded):
-    bare = unloaded_state(breast_mesh, {k: v for k, v in PAPER_MATERIALS.items() if k != "skin"}, n_steps=1)
+    bare = unloaded_state(
+        breast_mesh, {k: v for k, v in PAPER_MATERIALS.items() if k != "skin"}, n_steps=1
+    )
     with_skin = np.linalg.norm(unloaded[-1] - breast_mesh.points, axis=1).max()
     assert with_skin < np.linalg.norm(bare[-1] - breast_mesh.points, axis=1).max()
