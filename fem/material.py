@@ -109,3 +109,17 @@ def cauchy_stress(F: NDArray, mu: NDArray | float, kappa: NDArray | float) -> ND
     """Cauchy stress ``P F^T / J``, Pa."""
     J = np.linalg.det(F)[..., None, None]
     return neo_hookean_pk1(F, mu, kappa) @ np.swapaxes(F, -1, -2) / J
+
+
+def uniaxial_lateral_stretch(stretch: float, mu: float, kappa: float) -> float:
+    """Lateral stretch of uniaxial stress along one axis (the lateral stress vanishes).
+
+    The closed-form reference of the verification tests: with ``a`` this value,
+    ``F = diag(a, a, stretch)`` and ``neo_hookean_pk1(F)[2, 2]`` is the nominal stress.
+    """
+    from scipy.optimize import brentq
+
+    def lateral_stress(a: float) -> float:
+        return float(neo_hookean_pk1(np.diag([a, a, stretch]), mu, kappa)[0, 0])
+
+    return float(brentq(lateral_stress, 0.2, 5.0))

@@ -54,7 +54,11 @@ class NewtonSettings:
     Parameters
     ----------
     tolerance : float
-        Converged when ``|r_free| <= tolerance * max(|f_ext|, |f_int|)``.
+        Converged when ``|r_free| <= tolerance * max(|f_ext|, |f_int|)``, ...
+    step_tolerance : float
+        ... or when a Newton correction moves no node by more than this, mm (needed when
+        internal and external forces both vanish at equilibrium, e.g. plates squeezing an
+        unloaded body).
     max_iterations : int
         Newton iterations per load increment.
     min_step : float
@@ -64,6 +68,7 @@ class NewtonSettings:
     """
 
     tolerance: float = 1e-8
+    step_tolerance: float = 1e-7
     max_iterations: int = 25
     min_step: float = 1.0 / 64
     min_jacobian: float = 1e-3
@@ -138,6 +143,10 @@ def newton(
             return x, it
         K = body.tangent(x)[free][:, free]
         dx = linear.solve(K, -r)
+        if np.abs(dx).max() <= settings.step_tolerance:
+            flat = flat.copy()
+            flat[free] += dx
+            return flat.reshape(x.shape), it + 1
         slope = r @ dx
         step = 1.0
         while True:
@@ -166,6 +175,7 @@ def load_ramp(
     record: Sequence[float],
     settings: NewtonSettings = DEFAULT_NEWTON,
     max_cutbacks: int = 10,
+    configure: Callable[[float], None] | None = None,
 ) -> NDArray[np.float64]:
     """Follow the equilibrium path from load factor 0 to ``max(record)``.
 
@@ -176,6 +186,8 @@ def load_ramp(
     record : sequence of float
         Increasing load factors at which the positions are recorded (each one is reached
         exactly; increments between them adapt).
+    configure : callable, optional
+        Called with the load factor before each solve, to move prescribed boundaries (plates).
 
     Returns
     -------
@@ -194,6 +206,8 @@ def load_ramp(
             guess = x + (nxt - lam) * velocity
             if body.min_jacobian(guess) <= settings.min_jacobian:
                 guess = x
+            if configure is not None:
+                configure(nxt)
             try:
                 x_new, iterations = newton(body, guess, free, load(nxt), settings, linear)
             except SolverError as exc:

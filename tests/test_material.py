@@ -2,7 +2,6 @@
 
 import numpy as np
 import pytest
-from scipy.optimize import brentq
 
 from fem.material import (
     cauchy_stress,
@@ -11,6 +10,7 @@ from fem.material import (
     isochoric_tangent,
     lame_parameters,
     neo_hookean_pk1,
+    uniaxial_lateral_stretch,
 )
 
 MU, KAPPA = lame_parameters(1100.0, 0.495)  # fat
@@ -18,7 +18,7 @@ MU, KAPPA = lame_parameters(1100.0, 0.495)  # fat
 
 def uniaxial(stretch: float) -> np.ndarray:
     """F of uniaxial stress along z: the lateral stretch makes the lateral stress vanish."""
-    lateral = brentq(lambda t: neo_hookean_pk1(np.diag([t, t, stretch]), MU, KAPPA)[0, 0], 0.3, 3.0)
+    lateral = uniaxial_lateral_stretch(stretch, MU, KAPPA)
     return np.diag([lateral, lateral, stretch])
 
 

@@ -5,7 +5,7 @@ import pytest
 import skfem
 
 from fem.assembly import HyperelasticBody
-from fem.material import lame_parameters, neo_hookean_pk1
+from fem.material import lame_parameters, neo_hookean_pk1, uniaxial_lateral_stretch
 from fem.quality import signed_volume
 from fem.solver import (
     GRAVITY_FORCE_DENSITY,
@@ -60,16 +60,11 @@ def test_self_weight_finite_strain_matches_uniaxial_integral():
     x = load_ramp(body, p, free, lambda s: s * f, [0.5, 1.0])[-1]
 
     def stretch(nominal: float) -> float:
-        def lateral(l):
-            return brentq(lambda a: neo_hookean_pk1(np.diag([a, a, l]), MU, KAPPA)[0, 0], 0.3, 3.0)
+        def axial_stress(l: float) -> float:
+            a = uniaxial_lateral_stretch(l, MU, KAPPA)
+            return float(neo_hookean_pk1(np.diag([a, a, l]), MU, KAPPA)[2, 2]) - nominal
 
-        return brentq(
-            lambda l: (
-                neo_hookean_pk1(np.diag([lateral(l), lateral(l), l]), MU, KAPPA)[2, 2] - nominal
-            ),
-            0.3,
-            1.05,
-        )
+        return brentq(axial_stress, 0.3, 1.05)
 
     z = np.linspace(0, height, 61)
     lam = np.array([stretch(-GRAVITY_FORCE_DENSITY * (height - zz)) for zz in z])
