@@ -41,3 +41,17 @@ def ellipsoid_volume() -> LabelVolume:
     affine = np.eye(4)
     affine[:3, 3] = [-45, -8, -40]
     return LabelVolume(labels, affine, "ellipsoid")
+
+
+def assert_exact_derivatives(
+    part, x: np.ndarray, seed: int = 0, eps: float = 1e-6, rtol: float = 1e-6
+) -> None:
+    """A part's force is the gradient of its energy and its tangent the (symmetric) Jacobian
+    of its force, checked by central differences along a random direction."""
+    d = np.random.default_rng(seed).standard_normal(x.shape)
+    dW = (part.energy(x + eps * d) - part.energy(x - eps * d)) / (2 * eps)
+    assert part.internal_force(x) @ d.ravel() == pytest.approx(dW, rel=rtol)
+    df = (part.internal_force(x + eps * d) - part.internal_force(x - eps * d)) / (2 * eps)
+    K = part.tangent(x)
+    np.testing.assert_allclose(K @ d.ravel(), df, atol=rtol * np.abs(df).max())
+    assert abs(K - K.T).max() <= 1e-9 * abs(K).max()

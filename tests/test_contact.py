@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 import skfem
+from conftest import assert_exact_derivatives
 
 from fem.assembly import HyperelasticBody, Model
 from fem.contact import PlateContact, nodal_areas, smooth_ramp
@@ -44,16 +45,8 @@ def test_contact_force_and_tangent_are_derivatives():
     faces, _ = boundary_faces(p, t)
     top = np.flatnonzero(np.isclose(p[:, 2], 20))
     plate = PlateContact(top, nodal_areas(p, faces)[top], 19.9, -1, 5.0, len(p), smoothing=0.2)
-    rng = np.random.default_rng(4)
-    x = p + 0.1 * rng.standard_normal(p.shape)
-    d = rng.standard_normal(p.shape)
-    eps = 1e-7
-    dE = (plate.energy(x + eps * d) - plate.energy(x - eps * d)) / (2 * eps)
-    assert plate.internal_force(x) @ d.ravel() == pytest.approx(dE, rel=1e-5)
-    df = (plate.internal_force(x + eps * d) - plate.internal_force(x - eps * d)) / (2 * eps)
-    np.testing.assert_allclose(
-        plate.tangent(x) @ d.ravel(), df, rtol=1e-5, atol=1e-6 * np.abs(df).max()
-    )
+    x = p + 0.1 * np.random.default_rng(4).standard_normal(p.shape)
+    assert_exact_derivatives(plate, x, eps=1e-7, rtol=1e-5)
     # Nodes behind the chest-side edge (y < 5) feel nothing.
     behind = x[top, 1] < 5.0
     assert np.all(plate.internal_force(x).reshape(-1, 3)[top[behind], 2] == 0)
