@@ -9,7 +9,10 @@ steps. The nodes of the muscle/breast interface are fixed in the anteroposterior
 only and slide along the chest wall; the remaining rigid-body modes (translation in x and z,
 rotation about y) are removed by pinning DOFs that carry no load for a load along y.
 
-Step 2 (plate compression) is not implemented yet.
+Step 2, compression: the unloaded shape is the stress-free reference; two rigid frictionless
+plates perpendicular to z (`fem.contact`), the lower at the inframammary fold, the upper moving
+down to the compressed thickness; the standing patient's gravity along -z (switchable).
+Friction is not implemented yet.
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from fem.assembly import HyperelasticBody, Model
+from fem.contact import PlateContact, nodal_areas
 from fem.material import lame_parameters
 from fem.membrane import SkinMembrane
 from fem.solver import (
@@ -144,3 +148,91 @@ def breast_model(
         skin_mu, _ = lame_parameters(materials["skin"].young, materials["skin"].poisson)
         parts = (SkinMembrane(traj.points, traj.skin, float(skin_mu), SKIN_THICKNESS),)
     return Model(body, parts)
+
+
+@dataclass
+class CompressionResult:
+    """Recorded compression steps: positions (T, N, 3), plate edges (T, 2, 2) as (y, z) of the
+    lower and upper plate, and the compression ratio (T,)."""
+
+    positions: NDArray
+    plates: NDArray
+    compression_ratio: NDArray
+
+
+def compression(
+    traj: Trajectory,
+    start: NDArray,
+    compressed_thickness: float,
+    materials: Mapping[str, Material] = PAPER_MATERIALS,
+    n_steps: int = 70,
+    gravity: bool = True,
+    averaging: str = "nodal",
+    stiffness: float = 1e6,
+    settings: NewtonSettings = DEFAULT_NEWTON,
+) -> CompressionResult:
+    """Step 2: compress between two rigid plates perpendicular to z, frictionless.
+
+    The unloaded shape ``start`` (N, 3) is the stress-free reference. The lower plate sits at
+    the lowest skin node (the inframammary fold); the upper plate starts at the highest skin
+    node (first contact) and moves down to ``compressed_thickness`` above the lower one in
+    ``n_steps`` recorded steps. Both plates reach back to the chest wall (their chest-side
+    edge is at the most posterior muscle-interface node). The standing patient's gravity acts
+    along -z when ``gravity`` is true.
+    """
+    source = str(traj.metadata.get("source", "mesh"))
+    moved = Trajectory(
+        start,
+        traj.cells,
+        traj.tissue,
+        traj.node_tissue_code,
+        traj.node_flags,
+        traj.skin,
+        metadata=traj.metadata,
+    )
+    model = breast_model(moved, materials, averaging)
+    skin_nodes = traj.flagged(NodeFlag.SKIN)
+    bottom = float(start[skin_nodes, 2].min())
+    _check_thickness(compressed_thickness, float(start[skin_nodes, 2].max()) - bottom, source)
+    interface = traj.flagged(NodeFlag.MUSCLE_INTERFACE)
+    edge = float(start[interface, AP_AXIS].min())
+    areas = nodal_areas(start, traj.skin)[skin_nodes]
+    n = len(start)
+    lower = PlateContact(skin_nodes, areas, bottom, +1, edge, n, stiffness)
+    upper = PlateContact(skin_nodes, areas, np.inf, -1, edge, n, stiffness)
+    model = Model(model.body, (*model.parts, lower, upper))
+    free = chest_wall_free_dofs(moved, source)
+    if not gravity:  # nothing else holds the breast vertically before the upper plate touches
+        anchor = np.flatnonzero(~free[:, 0] & ~free[:, 2])
+        free[anchor, 2] = False
+    f = nodal_body_force(
+        model.body, np.array([0.0, 0.0, -GRAVITY_FORCE_DENSITY if gravity else 0.0])
+    )
+    # Phase 0: the standing patient's gravity settles the breast on the lower plate.
+    upper.height = np.inf
+    settled = load_ramp(model, start, free.ravel(), lambda s: s * f, [1.0], settings)[-1]
+    top = float(settled[skin_nodes, 2].max())  # first contact of the upper plate
+    _check_thickness(compressed_thickness, top - bottom, source)
+    target = bottom + compressed_thickness
+    heights = top - (top - target) * np.arange(1, n_steps + 1) / n_steps
+
+    def move(s: float) -> None:
+        upper.height = top - (top - target) * s
+
+    record = np.arange(1, n_steps + 1) / n_steps
+    positions = load_ramp(
+        model, settled, free.ravel(), lambda s: f, record, settings, configure=move
+    )
+    plates = np.zeros((n_steps, 2, 2))
+    plates[:, :, 0] = edge
+    plates[:, 0, 1] = bottom
+    plates[:, 1, 1] = heights
+    return CompressionResult(positions, plates, 1.0 - (heights - bottom) / (top - bottom))
+
+
+def _check_thickness(thickness: float, extent: float, source: str) -> None:
+    if not 0 < thickness < extent:
+        raise ValueError(
+            f"{source}: compressed thickness {thickness:.1f} mm is not smaller than the breast's "
+            f"cranio-caudal extent {extent:.1f} mm (or not positive)"
+        )

@@ -8,6 +8,7 @@ from fem.simulate import (
     PAPER_MATERIALS,
     Material,
     chest_wall_free_dofs,
+    compression,
     element_moduli,
     unloaded_state,
 )
@@ -69,3 +70,31 @@ def test_skin_membrane_stiffens_the_breast(breast_mesh, unloaded):
     )
     with_skin = np.linalg.norm(unloaded[-1] - breast_mesh.points, axis=1).max()
     assert with_skin < np.linalg.norm(bare[-1] - breast_mesh.points, axis=1).max()
+
+
+@pytest.fixture(scope="module")
+def compressed(breast_mesh, unloaded):
+    thickness = 0.6 * np.ptp(unloaded[-1][breast_mesh.flagged(NodeFlag.SKIN), 2])
+    return compression(breast_mesh, unloaded[-1], thickness, n_steps=4), thickness
+
+
+def test_compression_between_plates(breast_mesh, unloaded, compressed):
+    result, thickness = compressed
+    assert result.positions.shape == (4, breast_mesh.n_nodes, 3)
+    assert np.all(np.diff(result.compression_ratio) > 0)
+    lower, upper = result.plates[-1, 0, 1], result.plates[-1, 1, 1]
+    assert upper - lower == pytest.approx(thickness)
+    x = result.positions[-1]
+    skin = breast_mesh.flagged(NodeFlag.SKIN)
+    covered = x[skin, 1] >= result.plates[-1, 0, 0]
+    assert x[skin[covered], 2].min() > lower - 0.1 and x[skin[covered], 2].max() < upper + 0.1
+    vol = signed_volume(x, breast_mesh.cells)
+    assert vol.min() > 0
+    assert vol.sum() == pytest.approx(
+        signed_volume(unloaded[-1], breast_mesh.cells).sum(), rel=0.03
+    )
+
+
+def test_compression_thicker_than_breast(breast_mesh, unloaded):
+    with pytest.raises(ValueError, match=r"compressed thickness 900\.0 mm is not smaller"):
+        compression(breast_mesh, unloaded[-1], 900.0, n_steps=2)
