@@ -103,6 +103,12 @@ class HyperelasticBody:
         Shear and bulk moduli per element, Pa.
     averaging : {"nodal", "element"}
         Volumetric patches: nodal averaging (locking-free) or plain P1.
+    stabilization : float
+        With nodal averaging, the share ``alpha`` of the volumetric energy kept on the elements:
+        ``(1 - alpha) sum_n V_n U(Jbar_n) + alpha sum_e V_e U(J_e)``. Pure nodal averaging
+        leaves element-level volume changes that average out over a node's patch almost free
+        (a spurious mode that made compression fail with elements at J = 0.25); a small alpha
+        suppresses it at the price of a little of plain P1's locking.
 
     Units: with mm and Pa, energies are in Pa mm^3 = 1e-9 J and forces in Pa mm^2 = 1e-6 N.
     """
@@ -112,6 +118,7 @@ class HyperelasticBody:
     mu: NDArray
     kappa: NDArray
     averaging: str = "nodal"
+    stabilization: float = 0.0
     grads: NDArray = field(init=False, repr=False)
     volumes: NDArray = field(init=False, repr=False)
 
@@ -129,14 +136,22 @@ class HyperelasticBody:
                 f"{int((self.volumes <= 0).sum())} elements have non-positive reference volume"
             )
         n = len(self.points)
+        if not 0.0 <= self.stabilization <= 1.0:
+            raise ValueError(f"stabilization must lie in [0, 1], got {self.stabilization}")
+        element_patches = sparse.diags(self.volumes).tocsr()
         if self.averaging == "nodal":
             rows = self.cells.ravel()
             cols = np.repeat(np.arange(n_el), 4)
             S = sparse.csr_matrix((np.repeat(self.volumes / 4.0, 4), (rows, cols)), shape=(n, n_el))
             # Patch bulk modulus: volume average of the element moduli of the patch.
             self.patch_kappa = (S @ self.kappa) / np.asarray(S.sum(axis=1)).ravel()
+            if self.stabilization > 0:  # weighted patches: the weights scale the patch volumes
+                S = sparse.vstack(
+                    [(1 - self.stabilization) * S, self.stabilization * element_patches]
+                ).tocsr()
+                self.patch_kappa = np.concatenate([self.patch_kappa, self.kappa])
         else:
-            S = sparse.diags(self.volumes).tocsr()
+            S = element_patches
             self.patch_kappa = self.kappa
         self.S = S
         self.patch_volume = np.asarray(S.sum(axis=1)).ravel()

@@ -58,6 +58,10 @@ PAPER_MATERIALS: dict[str, Material] = {
 #: Thickness of the skin membrane, mm (the paper's 2 mm membrane elements).
 SKIN_THICKNESS = 2.0
 
+#: Share of the volumetric energy kept on the elements with nodal averaging
+#: (`fem.assembly.HyperelasticBody.stabilization`).
+VOLUMETRIC_STABILIZATION = 0.1
+
 
 def element_moduli(
     tissue: NDArray, materials: Mapping[str, Material], source: str = "mesh"
@@ -142,7 +146,8 @@ def breast_model(
     """The tissue body and, when ``materials`` has ``"skin"``, the skin membrane on ``traj.skin``."""
     source = str(traj.metadata.get("source", "mesh"))
     mu, kappa = element_moduli(traj.tissue, materials, source)
-    body = HyperelasticBody(traj.points, traj.cells, mu, kappa, averaging=averaging)
+    stabilization = VOLUMETRIC_STABILIZATION if averaging == "nodal" else 0.0
+    body = HyperelasticBody(traj.points, traj.cells, mu, kappa, averaging, stabilization)
     parts = ()
     if "skin" in materials and len(traj.skin):
         skin_mu, _ = lame_parameters(materials["skin"].young, materials["skin"].poisson)

@@ -1,8 +1,10 @@
 """Quasi-static equilibrium: Newton's method with a safeguarded line search, and load ramps.
 
 Equilibrium minimises the potential ``Pi(x) = W(x) - f_ext . x`` over the free degrees of
-freedom. Each Newton step solves ``K dx = -r`` on the free DOFs; the line search halves the
-step until no element is inverted and the potential decreases (Armijo). A load ramp raises
+freedom. Each Newton step solves ``K dx = -r`` on the free DOFs; where ``K`` is indefinite and
+``dx`` is no descent direction, ``K + tau diag|K|`` is solved instead with ``tau`` raised tenfold
+until it is (a Levenberg-Marquardt safeguard); the line search halves the step until no element
+is inverted and the potential decreases (Armijo). A load ramp raises
 the load factor in increments, halving an increment whose Newton iteration fails and growing
 it again after easy steps, and records the positions at the requested load factors.
 """
@@ -148,6 +150,13 @@ def newton(
             flat[free] += dx
             return flat.reshape(x.shape), it + 1
         slope = r @ dx
+        shift = 1e-3
+        while (
+            slope >= 0
+        ):  # indefinite tangent (buckling skin, instability): shift it until dx descends
+            diagonal = sparse.diags(np.abs(K.diagonal()))
+            dx = splu((K + shift * diagonal).tocsc(), permc_spec="MMD_AT_PLUS_A").solve(-r)
+            slope, shift = r @ dx, 10 * shift
         step = 1.0
         while True:
             trial = flat.copy()

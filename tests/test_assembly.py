@@ -17,10 +17,12 @@ def block():
     return points, cells, mu, kappa
 
 
-@pytest.mark.parametrize("averaging", ["element", "nodal"])
-def test_force_and_tangent_are_derivatives(block, averaging):
+@pytest.mark.parametrize(
+    ("averaging", "stabilization"), [("element", 0.0), ("nodal", 0.0), ("nodal", 0.1)]
+)
+def test_force_and_tangent_are_derivatives(block, averaging, stabilization):
     points, cells, mu, kappa = block
-    body = HyperelasticBody(points, cells, mu, kappa, averaging=averaging)
+    body = HyperelasticBody(points, cells, mu, kappa, averaging, stabilization)
     x = points + 0.4 * np.random.default_rng(0).standard_normal(points.shape)
     assert_exact_derivatives(body, x)
 
@@ -64,3 +66,15 @@ def test_rigid_rotation_gives_zero_force(block, averaging):
     x = points @ R.T + np.array([3.0, -2.0, 1.0])
     assert body.energy(x) == pytest.approx(0, abs=1e-6)
     assert np.abs(body.internal_force(x)).max() < 1e-8
+
+
+def test_stabilization_interpolates_between_nodal_and_element(block):
+    points, cells, mu, kappa = block
+    x = points + 0.4 * np.random.default_rng(5).standard_normal(points.shape)
+    nodal = HyperelasticBody(points, cells, mu, kappa, "nodal").energy(x)
+    element = HyperelasticBody(points, cells, mu, kappa, "element").energy(x)
+    iso = HyperelasticBody(points, cells, mu, 0 * kappa, "element").energy(x)
+    mixed = HyperelasticBody(points, cells, mu, kappa, "nodal", 0.25).energy(x)
+    assert mixed - iso == pytest.approx(0.75 * (nodal - iso) + 0.25 * (element - iso), rel=1e-10)
+    with pytest.raises(ValueError, match="stabilization"):
+        HyperelasticBody(points, cells, mu, kappa, "nodal", 1.5)
