@@ -182,8 +182,8 @@ def compression(
     the lowest skin node (the inframammary fold); the upper plate starts at the highest skin
     node (first contact) and moves down to ``compressed_thickness`` above the lower one in
     ``n_steps`` recorded steps. Both plates reach back to the chest wall (their chest-side
-    edge is at the most posterior muscle-interface node). The standing patient's gravity acts
-    along -z when ``gravity`` is true.
+    edge is at the most posterior muscle-interface node). The standing patient's gravity
+    along -z (when ``gravity`` is true) is ramped with the plate travel.
     """
     source = str(traj.metadata.get("source", "mesh"))
     moved = Trajectory(
@@ -197,36 +197,40 @@ def compression(
     )
     model = breast_model(moved, materials, averaging)
     skin_nodes = traj.flagged(NodeFlag.SKIN)
-    bottom = float(start[skin_nodes, 2].min())
-    _check_thickness(compressed_thickness, float(start[skin_nodes, 2].max()) - bottom, source)
+    bottom, top = float(start[skin_nodes, 2].min()), float(start[skin_nodes, 2].max())
+    _check_thickness(compressed_thickness, top - bottom, source)
     interface = traj.flagged(NodeFlag.MUSCLE_INTERFACE)
+    if interface.size < 2:
+        chest_wall_free_dofs(moved, source)  # raises the interface error
     edge = float(start[interface, AP_AXIS].min())
     areas = nodal_areas(start, traj.skin)[skin_nodes]
     n = len(start)
+    # Both plates touch from the start (the lowest and the highest skin node): the plates hold
+    # the breast vertically, so only x is pinned (at the interface node nearest the centre, and
+    # at the one farthest from it in z, which stops the spin about y); no pin carries the plate
+    # or gravity loads.
     lower = PlateContact(skin_nodes, areas, bottom, +1, edge, n, stiffness)
-    upper = PlateContact(skin_nodes, areas, np.inf, -1, edge, n, stiffness)
+    upper = PlateContact(skin_nodes, areas, top, -1, edge, n, stiffness)
     model = Model(model.body, (*model.parts, lower, upper))
-    free = chest_wall_free_dofs(moved, source)
-    if not gravity:  # nothing else holds the breast vertically before the upper plate touches
-        anchor = np.flatnonzero(~free[:, 0] & ~free[:, 2])
-        free[anchor, 2] = False
+    free = np.ones((n, 3), bool)
+    free[interface, AP_AXIS] = False
+    p = start[interface]
+    anchor = interface[np.argmin(np.linalg.norm(p - p.mean(0), axis=1))]
+    far = interface[np.argmax(np.abs(p[:, 2] - start[anchor, 2]))]
+    free[[anchor, far], 0] = False
+    # The standing patient's gravity rises with the plate travel (it is fully on at the target).
     f = nodal_body_force(
         model.body, np.array([0.0, 0.0, -GRAVITY_FORCE_DENSITY if gravity else 0.0])
     )
-    # Phase 0: the standing patient's gravity settles the breast on the lower plate.
-    upper.height = np.inf
-    settled = load_ramp(model, start, free.ravel(), lambda s: s * f, [1.0], settings)[-1]
-    top = float(settled[skin_nodes, 2].max())  # first contact of the upper plate
-    _check_thickness(compressed_thickness, top - bottom, source)
     target = bottom + compressed_thickness
-    heights = top - (top - target) * np.arange(1, n_steps + 1) / n_steps
+    record = np.arange(1, n_steps + 1) / n_steps
+    heights = top - (top - target) * record
 
     def move(s: float) -> None:
         upper.height = top - (top - target) * s
 
-    record = np.arange(1, n_steps + 1) / n_steps
     positions = load_ramp(
-        model, settled, free.ravel(), lambda s: f, record, settings, configure=move
+        model, start, free.ravel(), lambda s: s * f, record, settings, configure=move
     )
     plates = np.zeros((n_steps, 2, 2))
     plates[:, :, 0] = edge
