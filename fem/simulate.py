@@ -18,7 +18,7 @@ Friction is not implemented yet.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -86,12 +86,15 @@ def element_moduli(
     return mu, kappa
 
 
-def chest_wall_free_dofs(traj: Trajectory, source: str = "mesh") -> NDArray[np.bool_]:
+def chest_wall_free_dofs(
+    traj: Trajectory, source: str = "mesh", translations: tuple[int, ...] = (0, 2)
+) -> NDArray[np.bool_]:
     """Free-DOF mask (N, 3): interface nodes fixed along y, plus load-free rigid-body pins.
 
-    The pins: the interface node nearest the interface centroid is fixed in x and z; the
-    interface node farthest from it (in the x-z plane) is fixed in the direction normal to
-    the line joining them, which stops the rotation about y.
+    The pins: the interface node nearest the interface centroid is fixed along the axes in
+    ``translations`` (x and z for the unloaded state; x only under the plates, which hold z);
+    the interface node farthest from it in z is fixed in x, which stops the spin about y.
+    Neither carries load when the loads act along y (step 1) or z (step 2).
 
     Raises
     ------
@@ -108,11 +111,9 @@ def chest_wall_free_dofs(traj: Trajectory, source: str = "mesh") -> NDArray[np.b
     free[interface, AP_AXIS] = False
     p = traj.points[interface]
     anchor = interface[np.argmin(np.linalg.norm(p - p.mean(0), axis=1))]
-    free[anchor, [0, 2]] = False
-    offset = (traj.points[interface] - traj.points[anchor])[:, [0, 2]]
-    far = interface[np.argmax(np.linalg.norm(offset, axis=1))]
-    d = traj.points[far] - traj.points[anchor]
-    free[far, 2 if abs(d[0]) >= abs(d[2]) else 0] = False
+    free[anchor, list(translations)] = False
+    far = interface[np.argmax(np.abs(p[:, 2] - traj.points[anchor, 2]))]
+    free[far, 0] = False
     return free
 
 
@@ -186,48 +187,35 @@ def compression(
     along -z (when ``gravity`` is true) is ramped with the plate travel.
     """
     source = str(traj.metadata.get("source", "mesh"))
-    moved = Trajectory(
-        start,
-        traj.cells,
-        traj.tissue,
-        traj.node_tissue_code,
-        traj.node_flags,
-        traj.skin,
-        metadata=traj.metadata,
-    )
+    moved = replace(traj, points=np.asarray(start, float))
     model = breast_model(moved, materials, averaging)
     skin_nodes = traj.flagged(NodeFlag.SKIN)
     bottom, top = float(start[skin_nodes, 2].min()), float(start[skin_nodes, 2].max())
     _check_thickness(compressed_thickness, top - bottom, source)
+    free = chest_wall_free_dofs(moved, source, translations=(0,))
     interface = traj.flagged(NodeFlag.MUSCLE_INTERFACE)
-    if interface.size < 2:
-        chest_wall_free_dofs(moved, source)  # raises the interface error
     edge = float(start[interface, AP_AXIS].min())
     areas = nodal_areas(start, traj.skin)[skin_nodes]
     n = len(start)
-    # Both plates touch from the start (the lowest and the highest skin node): the plates hold
-    # the breast vertically, so only x is pinned (at the interface node nearest the centre, and
-    # at the one farthest from it in z, which stops the spin about y); no pin carries the plate
-    # or gravity loads.
+    # Both plates touch from the start (the lowest and the highest skin node): they hold the
+    # breast vertically, so the chest-wall pins fix x only and carry no plate or gravity load.
     lower = PlateContact(skin_nodes, areas, bottom, +1, edge, n, stiffness)
     upper = PlateContact(skin_nodes, areas, top, -1, edge, n, stiffness)
     model = Model(model.body, (*model.parts, lower, upper))
-    free = np.ones((n, 3), bool)
-    free[interface, AP_AXIS] = False
-    p = start[interface]
-    anchor = interface[np.argmin(np.linalg.norm(p - p.mean(0), axis=1))]
-    far = interface[np.argmax(np.abs(p[:, 2] - start[anchor, 2]))]
-    free[[anchor, far], 0] = False
     # The standing patient's gravity rises with the plate travel (it is fully on at the target).
     f = nodal_body_force(
         model.body, np.array([0.0, 0.0, -GRAVITY_FORCE_DENSITY if gravity else 0.0])
     )
     target = bottom + compressed_thickness
     record = np.arange(1, n_steps + 1) / n_steps
-    heights = top - (top - target) * record
+
+    def plate_height(s: NDArray | float) -> NDArray | float:
+        return top - (top - target) * s
+
+    heights = plate_height(record)
 
     def move(s: float) -> None:
-        upper.height = top - (top - target) * s
+        upper.height = plate_height(s)
 
     positions = load_ramp(
         model, start, free.ravel(), lambda s: s * f, record, settings, configure=move
