@@ -211,3 +211,115 @@ def _save(fig: plt.Figure, path: str | Path) -> Path:
         fig.savefig(tmp, dpi=90)
     plt.close(fig)
     return path
+
+
+def simulation_summary_png(rows: Sequence[dict], path: str | Path) -> Path:
+    """The cohort simulation report: compression reached, run times and failures.
+
+    Parameters
+    ----------
+    rows : sequence of dict
+        One per simulated breast, with keys ``name`` (str), ``status`` (``"ok"`` or
+        ``"failed"``), ``reason`` (str, ``""`` when ok), ``volume_cm3`` (float, cm^3),
+        ``time_unloaded_s`` (float, s), ``time_compression_s`` (float, s; NaN when failed),
+        ``compression_ratio`` (float, final ratio reached, 1 - gap / thickness; NaN when
+        failed) and ``target_compression_ratio`` (float).
+    path : str or Path
+        Output PNG, written atomically.
+
+    Returns
+    -------
+    Path
+        ``path``.
+
+    Notes
+    -----
+    Panels: histogram of the final compression ratios of the converged breasts (with their
+    targets as an outline), histograms of the time per breast (unloaded-state step,
+    compression step and their total), time against breast volume (failed breasts in red,
+    at the time of their unloaded-state step), and the list of failures with their reasons.
+    """
+    ok = [r for r in rows if r["status"] == "ok"]
+    failed = [r for r in rows if r["status"] != "ok"]
+
+    def values(rs: Sequence[dict], get) -> NDArray[np.float64]:
+        v = np.array([get(r) for r in rs], float)
+        return v[np.isfinite(v)]
+
+    fig, axes = plt.subplots(2, 2, figsize=(11, 7.5))
+
+    ax = axes[0, 0]
+    reached = values(ok, lambda r: 100 * r["compression_ratio"])
+    target = values(ok, lambda r: 100 * r["target_compression_ratio"])
+    bins = np.arange(0, 102, 4)
+    ax.hist(reached, bins=bins, color="#1f77b4", alpha=0.8, label="reached")
+    ax.hist(target, bins=bins, histtype="step", color="k", lw=1.5, label="target")
+    ax.set_xlabel("final compression ratio [%]")
+    ax.set_ylabel("breasts")
+    title = f"converged: {len(ok)} breasts"
+    if reached.size:
+        title += f", median {np.median(reached):.0f} %, max {reached.max():.0f} %"
+    ax.set_title(title, fontsize=10)
+    ax.legend()
+
+    ax = axes[0, 1]
+    t_unloaded = values(rows, lambda r: r["time_unloaded_s"])
+    t_compression = values(ok, lambda r: r["time_compression_s"])
+    t_total = values(ok, lambda r: r["time_unloaded_s"] + r["time_compression_s"])
+    all_times = np.concatenate([t_unloaded, t_compression, t_total, [1.0]])
+    bins = np.linspace(0, 1.05 * all_times.max(), 26)
+    ax.hist(t_total, bins=bins, color="#2ca02c", alpha=0.6, label="total (converged)")
+    ax.hist(t_unloaded, bins=bins, histtype="step", lw=1.8, label="unloaded-state step (all)")
+    ax.hist(t_compression, bins=bins, histtype="step", lw=1.8, label="compression step")
+    ax.set_xlabel("time per breast [s]")
+    ax.set_ylabel("breasts")
+    title = "time per breast"
+    if t_total.size:
+        title += f": median total {np.median(t_total):.0f} s, max {t_total.max():.0f} s"
+    ax.set_title(title, fontsize=10)
+    ax.legend(fontsize=8)
+
+    ax = axes[1, 0]
+    ax.scatter(
+        [r["volume_cm3"] for r in ok],
+        [r["time_unloaded_s"] + r["time_compression_s"] for r in ok],
+        s=18,
+        color="#1f77b4",
+        label=f"converged ({len(ok)}), total time",
+    )
+    if failed:
+        ax.scatter(
+            [r["volume_cm3"] for r in failed],
+            [r["time_unloaded_s"] for r in failed],
+            s=30,
+            marker="x",
+            color="red",
+            label=f"failed ({len(failed)}), unloaded-state step time",
+        )
+    ax.set_xlabel("breast volume [cm$^3$]")
+    ax.set_ylabel("time [s]")
+    ax.set_title("time against breast volume", fontsize=10)
+    ax.legend(fontsize=8)
+
+    ax = axes[1, 1]
+    ax.axis("off")
+    lines = [f"failures: {len(failed)} of {len(rows)} breasts"]
+    shown = 14
+    lines += [f"{r['name']}: {r['reason'] or 'no reason given'}"[:70] for r in failed[:shown]]
+    if len(failed) > shown:
+        lines.append(f"... and {len(failed) - shown} more")
+    ax.text(
+        0.0,
+        1.0,
+        "\n".join(lines),
+        transform=ax.transAxes,
+        va="top",
+        ha="left",
+        family="monospace",
+        fontsize=8,
+        color="red" if failed else "k",
+    )
+
+    fig.suptitle(f"Simulation of {len(rows)} breasts: {len(ok)} converged, {len(failed)} failed")
+    fig.tight_layout()
+    return _save(fig, path)
