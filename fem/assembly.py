@@ -38,6 +38,7 @@ from fem.material import (
     volumetric_stiffness,
 )
 from fem.quality import signed_volume
+from fem.tensor import cofactor, determinant, inverse
 
 
 def shape_gradients(
@@ -61,20 +62,18 @@ def shape_gradients(
 
 def deformation_gradient(x: NDArray, cells: NDArray, grads: NDArray) -> NDArray[np.float64]:
     """``F_e = sum_a x_a (x) grad N_a``, shape (E, 3, 3), for current node positions ``x``."""
-    return np.einsum("eai,eaj->eij", x[cells], grads)
+    return np.swapaxes(x[cells], 1, 2) @ grads
 
 
 def jacobian_gradient(F: NDArray, grads: NDArray) -> NDArray[np.float64]:
-    """``dJ_e / dx_{a,i} = J F^-T_ij G_aj``, shape (E, 4, 3)."""
-    J = np.linalg.det(F)
-    FinvT = np.swapaxes(np.linalg.inv(F), 1, 2)
-    return np.einsum("e,eij,eaj->eai", J, FinvT, grads)
+    """``dJ_e / dx_{a,i} = J F^-T_ij G_aj = (cof F)_ij G_aj``, shape (E, 4, 3)."""
+    return grads @ np.swapaxes(cofactor(F), 1, 2)
 
 
 def jacobian_second_derivative(F: NDArray) -> NDArray[np.float64]:
     """``d2 J / dF_ij dF_kl = J (F^-T_ij F^-T_kl - F^-1_jk F^-1_li)``, shape (E, 3, 3, 3, 3)."""
-    J = np.linalg.det(F)[:, None, None, None, None]
-    Finv = np.linalg.inv(F)
+    Finv, J = inverse(F)
+    J = J[:, None, None, None, None]
     FinvT = np.swapaxes(Finv, 1, 2)
     return J * (np.einsum("eij,ekl->eijkl", FinvT, FinvT) - np.einsum("ejk,eli->eijkl", Finv, Finv))
 
@@ -173,13 +172,13 @@ class HyperelasticBody:
 
     def _volumetric(self, x: NDArray) -> tuple[NDArray, NDArray, NDArray]:
         F = deformation_gradient(x, self.cells, self.grads)
-        J = np.linalg.det(F)
+        J = determinant(F)
         Jbar = (self.S @ J) / self.patch_volume
         return F, J, Jbar
 
     def min_jacobian(self, x: NDArray) -> float:
         """Smallest ``det F`` over the elements (<= 0: an element is inverted)."""
-        return float(np.linalg.det(deformation_gradient(x, self.cells, self.grads)).min())
+        return float(determinant(deformation_gradient(x, self.cells, self.grads)).min())
 
     def energy(self, x: NDArray) -> float:
         """Strain energy at node positions ``x`` (N, 3), Pa mm^3."""
@@ -218,7 +217,11 @@ class HyperelasticBody:
 
 @dataclass
 class Model:
-    """A solid body plus surface parts (the skin membrane): energies, forces and tangents add."""
+    """A solid body plus parts (skin membrane, plates): energies, forces and tangents add.
+
+    Parts with an ``apply_bounds(x, lower, upper)`` method (rigid plates) also bound DOFs, and
+    parts with ``accept(x, gradient)`` are told each converged load step (lagged friction).
+    """
 
     body: HyperelasticBody
     parts: tuple = ()
@@ -226,6 +229,21 @@ class Model:
     @property
     def cells(self) -> NDArray:
         return self.body.cells
+
+    def bounds(self, x: NDArray) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Lower and upper bounds (3N,) of the DOFs at positions ``x`` (+-inf: unbounded)."""
+        lower = np.full(self.body.n_dofs, -np.inf)
+        upper = np.full(self.body.n_dofs, np.inf)
+        for p in self.parts:
+            if hasattr(p, "apply_bounds"):
+                p.apply_bounds(x, lower, upper)
+        return lower, upper
+
+    def accept(self, x: NDArray, gradient: NDArray) -> None:
+        """Tell the parts that ``x`` is a converged load step (``gradient = dPi/dx``)."""
+        for p in self.parts:
+            if hasattr(p, "accept"):
+                p.accept(x, gradient)
 
     def min_jacobian(self, x: NDArray) -> float:
         return self.body.min_jacobian(x)

@@ -18,6 +18,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from fem.tensor import determinant, inverse
+
 
 def lame_parameters(young: NDArray | float, poisson: NDArray | float) -> tuple[NDArray, NDArray]:
     """Shear and bulk moduli of an isotropic material.
@@ -42,16 +44,17 @@ def lame_parameters(young: NDArray | float, poisson: NDArray | float) -> tuple[N
 
 def isochoric_energy(F: NDArray, mu: NDArray | float) -> NDArray:
     """``mu/2 (J^(-2/3) I1 - 3)``, Pa, shape F.shape[:-2]."""
-    J = np.linalg.det(F)
+    J = determinant(F)
     return 0.5 * mu * (J ** (-2.0 / 3.0) * np.einsum("...ij,...ij->...", F, F) - 3.0)
 
 
 def isochoric_pk1(F: NDArray, mu: NDArray | float) -> NDArray:
     """First Piola-Kirchhoff stress of the isochoric part, ``mu J^(-2/3) (F - I1/3 F^-T)``, Pa."""
     mu = np.asarray(mu, float)[..., None, None]
-    J = np.linalg.det(F)[..., None, None]
+    Finv, J = inverse(F)
+    J = J[..., None, None]
     I1 = np.einsum("...ij,...ij->...", F, F)[..., None, None]
-    FinvT = np.swapaxes(np.linalg.inv(F), -1, -2)
+    FinvT = np.swapaxes(Finv, -1, -2)
     return mu * J ** (-2.0 / 3.0) * (F - I1 / 3.0 * FinvT)
 
 
@@ -63,9 +66,9 @@ def isochoric_tangent(F: NDArray, mu: NDArray | float) -> NDArray:
     + I1/3 F^-1_li F^-1_jk]``.
     """
     mu = np.asarray(mu, float)[..., None, None, None, None]
-    Finv = np.linalg.inv(F)
+    Finv, J = inverse(F)
     FinvT = np.swapaxes(Finv, -1, -2)
-    J = np.linalg.det(F)[..., None, None, None, None]
+    J = J[..., None, None, None, None]
     I1 = np.einsum("...ij,...ij->...", F, F)[..., None, None, None, None]
     eye = np.eye(3)
     A = (
@@ -99,15 +102,15 @@ def volumetric_stiffness(J: NDArray, kappa: NDArray | float) -> NDArray:
 
 def neo_hookean_pk1(F: NDArray, mu: NDArray | float, kappa: NDArray | float) -> NDArray:
     """Total first Piola-Kirchhoff stress of the decoupled model at a material point, Pa."""
-    J = np.linalg.det(F)[..., None, None]
-    FinvT = np.swapaxes(np.linalg.inv(F), -1, -2)
+    Finv, J = inverse(F)
+    J, FinvT = J[..., None, None], np.swapaxes(Finv, -1, -2)
     p = volumetric_pressure(J, np.asarray(kappa, float)[..., None, None])
     return isochoric_pk1(F, mu) + p * J * FinvT
 
 
 def cauchy_stress(F: NDArray, mu: NDArray | float, kappa: NDArray | float) -> NDArray:
     """Cauchy stress ``P F^T / J``, Pa."""
-    J = np.linalg.det(F)[..., None, None]
+    J = determinant(F)[..., None, None]
     return neo_hookean_pk1(F, mu, kappa) @ np.swapaxes(F, -1, -2) / J
 
 

@@ -83,10 +83,11 @@ class SkinMembrane:
         self._ndof = 3 * n
 
     def _kinematics(self, x: NDArray) -> tuple[NDArray, NDArray, NDArray, NDArray]:
-        Fs = np.einsum("sai,saj->sij", x[self.triangles], self.grads)  # (S, 3, 2)
-        C = np.swapaxes(Fs, 1, 2) @ Fs
-        I3 = np.linalg.det(C)
-        return Fs, C, np.linalg.inv(C), I3
+        Fs = np.swapaxes(x[self.triangles], 1, 2) @ self.grads  # (S, 3, 2)
+        C = np.swapaxes(Fs, 1, 2) @ Fs  # (S, 2, 2), symmetric
+        I3 = C[:, 0, 0] * C[:, 1, 1] - C[:, 0, 1] ** 2
+        adjugate = np.stack([C[:, 1, 1], -C[:, 0, 1], -C[:, 0, 1], C[:, 0, 0]], axis=1)
+        return Fs, C, adjugate.reshape(-1, 2, 2) / I3[:, None, None], I3
 
     def energy(self, x: NDArray) -> float:
         """Stored energy, Pa mm^3."""

@@ -9,10 +9,10 @@ steps. The nodes of the muscle/breast interface are fixed in the anteroposterior
 only and slide along the chest wall; the remaining rigid-body modes (translation in x and z,
 rotation about y) are removed by pinning DOFs that carry no load for a load along y.
 
-Step 2, compression: the unloaded shape is the stress-free reference; two rigid frictionless
-plates perpendicular to z (`fem.contact`), the lower at the inframammary fold, the upper moving
-down to the compressed thickness; the standing patient's gravity along -z (switchable).
-Friction is not implemented yet.
+Step 2, compression: the unloaded shape is the stress-free reference; two rigid
+plates perpendicular to z (`fem.contact`: exact non-penetration, Coulomb friction 0.25), the
+lower at the inframammary fold, the upper moving down to the compressed thickness; the standing
+patient's gravity along -z (switchable).
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from fem.assembly import HyperelasticBody, Model
-from fem.contact import PlateContact, nodal_areas
+from fem.contact import RigidPlate
 from fem.material import lame_parameters
 from fem.membrane import SkinMembrane
 from fem.solver import (
@@ -57,6 +57,9 @@ PAPER_MATERIALS: dict[str, Material] = {
 
 #: Thickness of the skin membrane, mm (the paper's 2 mm membrane elements).
 SKIN_THICKNESS = 2.0
+
+#: Coulomb friction coefficient between the skin and the compression plates (the paper's 0.25).
+FRICTION = 0.25
 
 #: Share of the volumetric energy kept on the elements with nodal averaging
 #: (`fem.assembly.HyperelasticBody.stabilization`).
@@ -174,17 +177,18 @@ def compression(
     n_steps: int = 70,
     gravity: bool = True,
     averaging: str = "nodal",
-    stiffness: float = 1e6,
+    friction: float = FRICTION,
     settings: NewtonSettings = DEFAULT_NEWTON,
 ) -> CompressionResult:
-    """Step 2: compress between two rigid plates perpendicular to z, frictionless.
+    """Step 2: compress between two rigid plates perpendicular to z with Coulomb friction.
 
     The unloaded shape ``start`` (N, 3) is the stress-free reference. The lower plate sits at
     the lowest skin node (the inframammary fold); the upper plate starts at the highest skin
     node (first contact) and moves down to ``compressed_thickness`` above the lower one in
     ``n_steps`` recorded steps. Both plates reach back to the chest wall (their chest-side
     edge is at the most posterior muscle-interface node). The standing patient's gravity
-    along -z (when ``gravity`` is true) is ramped with the plate travel.
+    along -z (when ``gravity`` is true) is ramped with the plate travel. Both plates have the
+    Coulomb coefficient ``friction`` (0: frictionless).
     """
     source = str(traj.metadata.get("source", "mesh"))
     moved = replace(traj, points=np.asarray(start, float))
@@ -195,12 +199,11 @@ def compression(
     free = chest_wall_free_dofs(moved, source, translations=(0,))
     interface = traj.flagged(NodeFlag.MUSCLE_INTERFACE)
     edge = float(start[interface, AP_AXIS].min())
-    areas = nodal_areas(start, traj.skin)[skin_nodes]
     n = len(start)
     # Both plates touch from the start (the lowest and the highest skin node): they hold the
     # breast vertically, so the chest-wall pins fix x only and carry no plate or gravity load.
-    lower = PlateContact(skin_nodes, areas, bottom, +1, edge, n, stiffness)
-    upper = PlateContact(skin_nodes, areas, top, -1, edge, n, stiffness)
+    lower = RigidPlate(skin_nodes, bottom, +1, edge, n, friction)
+    upper = RigidPlate(skin_nodes, top, -1, edge, n, friction)
     model = Model(model.body, (*model.parts, lower, upper))
     # The standing patient's gravity rises with the plate travel (it is fully on at the target).
     f = nodal_body_force(

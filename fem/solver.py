@@ -26,6 +26,11 @@ from fem.assembly import HyperelasticBody, Model
 GRAVITY_FORCE_DENSITY = 9.81
 
 
+#: Distance from a bound, mm, within which a DOF counts as on it (steps land on a plate only
+#: to round-off).
+ON_BOUND = 1e-9
+
+
 class SolverError(RuntimeError):
     """Newton or the load ramp failed; the message says where and why."""
 
@@ -56,7 +61,8 @@ class NewtonSettings:
     Parameters
     ----------
     tolerance : float
-        Converged when ``|r_free| <= tolerance * max(|f_ext|, |f_int|)``, ...
+        Converged when ``|r_free| <= tolerance * max(|f_ext|, |f_int|)`` (1e-6 and 1e-8 gave
+        compressed breasts that differ by 2e-5 mm), ...
     step_tolerance : float
         ... or when a Newton correction moves no node by more than this, mm (needed when
         internal and external forces both vanish at equilibrium, e.g. plates squeezing an
@@ -69,7 +75,7 @@ class NewtonSettings:
         Elements with ``det F`` below this count as inverted.
     """
 
-    tolerance: float = 1e-8
+    tolerance: float = 1e-6
     step_tolerance: float = 1e-7
     max_iterations: int = 25
     min_step: float = 1.0 / 64
@@ -106,6 +112,80 @@ class ReusedFactorization:
 DEFAULT_NEWTON = NewtonSettings()
 
 
+def constrained(K: sparse.spmatrix, keep: NDArray[np.bool_]) -> sparse.csr_matrix:
+    """``K`` with the rows and columns of the DOFs not in ``keep`` zeroed but their diagonal kept.
+
+    Solving with it leaves those DOFs unchanged (zero right-hand side) while the matrix keeps its
+    shape and sparsity pattern, so one factorization can precondition the next active set.
+    """
+    K = K.tocsr(copy=True)
+    rows = np.repeat(np.arange(K.shape[0]), np.diff(K.indptr))
+    K.data *= (keep[rows] & keep[K.indices]) | (rows == K.indices)
+    return K
+
+
+def newton_step(
+    K: sparse.csr_matrix,
+    g: NDArray,
+    flat: NDArray,
+    free: NDArray[np.bool_],
+    held: NDArray[np.bool_],
+    lower: NDArray | None,
+    upper: NDArray | None,
+    linear: ReusedFactorization,
+) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """Newton correction of the free DOFs that stops at the bounds.
+
+    Solves ``K d = -g`` with the ``held`` DOFs fixed. A DOF the step would carry through its
+    bound is then fixed too and the step solved again, until none crosses: onto the bound when
+    its own gradient pushes it there (it is falling onto a plate), at its current value
+    otherwise. Clipping a plain Newton step instead breaks the step's consistency and the line
+    search fails as soon as nodes fall onto a plate. Should the bound moves make the step
+    ascend, they are dropped: with every crossing DOF held in place the step is a Newton step
+    in a subspace, a descent direction for a positive definite ``K``.
+
+    Parameters
+    ----------
+    K : (F, F) sparse
+        Tangent of the free DOFs.
+    g : (3N,) float
+        Gradient of the potential.
+    flat : (3N,) float
+        Current (feasible) DOF values.
+    held : (3N,) bool
+        DOFs held on their bounds (the plate pushes them).
+
+    Returns
+    -------
+    d : (F,) float64
+        The step of the free DOFs.
+    held : (3N,) bool
+        The DOFs the step fixes.
+    """
+    gf, x = g[free], flat[free]
+    fixed = held[free].copy()
+    p = np.zeros(len(x))
+    for _ in range(20):
+        keep = ~fixed
+        d = linear.solve(constrained(K, keep), np.where(keep, -(gf + K @ p), 0.0))
+        d = np.where(keep, d, p)
+        if lower is None:
+            break
+        target = np.clip(x + d, lower[free], upper[free])
+        crossing = keep & (np.abs(target - (x + d)) > ON_BOUND)
+        if not crossing.any():
+            if gf @ d < 0 or not p.any():
+                break
+            p[:] = 0.0  # the bound moves made the step ascend: hold those DOFs in place
+            continue
+        fixed |= crossing
+        onto = crossing & (gf * (target - x) < 0)  # the gradient pushes it onto the bound
+        p[onto] = (target - x)[onto]
+    out = np.zeros_like(free)
+    out[free] = fixed
+    return d, out
+
+
 def newton(
     body: HyperelasticBody | Model,
     x: NDArray,
@@ -115,6 +195,13 @@ def newton(
     linear: ReusedFactorization | None = None,
 ) -> tuple[NDArray[np.float64], int]:
     """Equilibrium positions from the start ``x`` (N, 3); fixed DOFs keep their values.
+
+    When ``body`` has bounds (`Model.bounds`: rigid plates), the free DOFs are projected onto
+    them and the equilibrium is the minimum of the potential over that box: projected Newton
+    with an active set. A DOF on a bound whose gradient pushes it out of the box is held for
+    the iteration (its multiplier has the right sign), one that would move inside is released,
+    and the step stops DOFs at the bounds they would cross (`newton_step`); line-search trials
+    are projected onto the box.
 
     Returns
     -------
@@ -127,7 +214,15 @@ def newton(
         No convergence, or the line search could not find an admissible descent step.
     """
     x = np.array(x, float)
+    if hasattr(body, "bounds"):
+        lower, upper = body.bounds(x)
+        lower[~free], upper[~free] = -np.inf, np.inf
+    else:
+        lower = upper = None
     flat = x.reshape(-1)
+    if lower is not None:
+        flat = np.clip(flat, lower, upper)
+        x = flat.reshape(x.shape)
     linear = linear or ReusedFactorization()
 
     def potential(y: NDArray) -> float:
@@ -136,43 +231,54 @@ def newton(
     def admissible(y: NDArray) -> bool:
         return body.min_jacobian(y) > settings.min_jacobian
 
+    if not admissible(x):
+        raise SolverError("the start (projected onto the bounds) has inverted elements")
+
     pi = potential(x)
     for it in range(settings.max_iterations):
-        f_int = body.internal_force(x)
-        r = (f_int - f_ext)[free]
-        scale = max(np.linalg.norm(f_ext[free]), np.linalg.norm(f_int[free]), 1e-30)
+        g = body.internal_force(x) - f_ext
+        held = np.zeros_like(free)
+        if lower is not None:  # DOFs on a bound that pushes back carry a contact force
+            held = free & (
+                ((flat <= lower + ON_BOUND) & (g > 0)) | ((flat >= upper - ON_BOUND) & (g < 0))
+            )
+        r = np.where(held, 0.0, g)[free]
+        scale = max(np.linalg.norm(f_ext[free]), np.linalg.norm((g + f_ext)[free]), 1e-30)
         if np.linalg.norm(r) <= settings.tolerance * scale:
             return x, it
         K = body.tangent(x)[free][:, free]
-        dx = linear.solve(K, -r)
-        if np.abs(dx).max() <= settings.step_tolerance:
-            flat = flat.copy()
-            flat[free] += dx
-            return flat.reshape(x.shape), it + 1
-        slope = r @ dx
+        dx, held = newton_step(K, g, flat, free, held, lower, upper, linear)
+        slope = g[free] @ dx
         shift = 1e-3
         while (
             slope >= 0
-        ):  # indefinite tangent (buckling skin, instability): shift it until dx descends
-            diagonal = sparse.diags(np.abs(K.diagonal()))
-            dx = splu((K + shift * diagonal).tocsc(), permc_spec="MMD_AT_PLUS_A").solve(-r)
-            slope, shift = r @ dx, 10 * shift
+        ):  # indefinite tangent (buckling skin, instability): shift until dx descends
+            shifted = K + shift * sparse.diags(np.abs(K.diagonal()))
+            dx = splu(constrained(shifted, ~held[free]).tocsc(), permc_spec="MMD_AT_PLUS_A").solve(
+                -np.where(held, 0.0, g)[free]
+            )
+            slope, shift = g[free] @ dx, 10 * shift
         step = 1.0
         while True:
             trial = flat.copy()
             trial[free] += step * dx
-            trial = trial.reshape(x.shape)
-            if admissible(trial):
-                pi_trial = potential(trial)
-                if pi_trial <= pi + 1e-4 * step * slope + 1e-12 * abs(pi):
+            if lower is not None:
+                trial = np.clip(trial, lower, upper)
+            decrease = min(g @ (trial - flat), 0.0)
+            trial_x = trial.reshape(x.shape)
+            if admissible(trial_x):
+                pi_trial = potential(trial_x)
+                if pi_trial <= pi + 1e-4 * decrease + 1e-12 * abs(pi):
                     break
             step *= 0.5
             if step < settings.min_step:
                 raise SolverError(
                     f"line search failed at Newton iteration {it} (|r| = {np.linalg.norm(r):.3g})"
                 )
-        x, pi = trial, pi_trial
-        flat = x.reshape(-1)
+        moved = np.abs(trial - flat).max()
+        x, flat, pi = trial_x, trial, pi_trial
+        if step == 1.0 and moved <= settings.step_tolerance:
+            return x, it + 1
     raise SolverError(f"Newton did not converge in {settings.max_iterations} iterations")
 
 
@@ -185,6 +291,7 @@ def load_ramp(
     settings: NewtonSettings = DEFAULT_NEWTON,
     max_cutbacks: int = 10,
     configure: Callable[[float], None] | None = None,
+    prescribed: Callable[[float], NDArray] | None = None,
 ) -> NDArray[np.float64]:
     """Follow the equilibrium path from load factor 0 to ``max(record)``.
 
@@ -197,6 +304,9 @@ def load_ramp(
         exactly; increments between them adapt).
     configure : callable, optional
         Called with the load factor before each solve, to move prescribed boundaries (plates).
+    prescribed : callable, optional
+        Load factor -> positions (N, 3) whose fixed DOFs (``~free``) are imposed at that load
+        factor (prescribed displacements); without it fixed DOFs keep their ``x0`` values.
 
     Returns
     -------
@@ -214,7 +324,9 @@ def load_ramp(
             nxt = min(lam + increment, target)
             guess = x + (nxt - lam) * velocity
             if body.min_jacobian(guess) <= settings.min_jacobian:
-                guess = x
+                guess = x.copy()
+            if prescribed is not None:
+                guess.reshape(-1)[~free] = prescribed(nxt).reshape(-1)[~free]
             if configure is not None:
                 configure(nxt)
             try:
@@ -227,6 +339,8 @@ def load_ramp(
                         f"load factor {nxt:.4g}: {exc}; gave up after {max_cutbacks} cutbacks"
                     ) from exc
                 continue
+            if hasattr(body, "accept"):
+                body.accept(x_new, body.internal_force(x_new) - load(nxt))
             velocity = (x_new - x) / (nxt - lam)
             x, lam = x_new, nxt
             if iterations <= 4:
