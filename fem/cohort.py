@@ -2,12 +2,16 @@
 
     python -m fem.cohort                         # embedded default (conf/cohort.yaml)
     python -m fem.cohort n_patients=258 out_dir=data/cohort/full workers=2
+    python -m fem.cohort ... simulate=false      # meshes only
 
 Per breast ``P0007_L`` it writes ``P0007_L.vtu`` (ParaView, tissue fields), ``P0007_L.png``
 (sections) and, last, ``P0007_L.npz`` (the `Trajectory`); a breast whose ``.npz`` exists is
 finished and never redone, so a killed run resumes where it stopped. Every file is written
 atomically. The cohort table (``cohort.csv``), report (``cohort.json``) and summary figure
 (``cohort_summary.png``) are rebuilt from the finished breasts at the end of each run.
+
+With ``simulate=true`` (the default) a second stage then simulates both FE steps on every
+meshed breast (`fem.cohort_simulation`: ``<out_dir>/trajectories/``, equally resumable).
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ from omegaconf import DictConfig
 from tqdm import tqdm
 
 from fem.atomic import atomic_path
+from fem.cohort_simulation import simulate_cohort
 from fem.figures import breast_sections_png, cohort_summary_png
 from fem.io import write_mesh
 from fem.mesh import Mesher
@@ -258,6 +263,17 @@ def run_cohort(cfg: DictConfig) -> dict:
     report = write_report(out_dir, cfg.n_patients, failures, time.perf_counter() - t0)
     print(json.dumps({k: v for k, v in report.items() if k != "failures"}, indent=2))
     print(f"{len(failures)} failures; outputs in {out_dir}")
+    if cfg.simulate:
+        names = [breast_name(p, lat) for p in range(cfg.n_patients) for lat in LATERALITIES]
+        report["simulation"] = simulate_cohort(
+            out_dir,
+            names,
+            instantiate(cfg.simulation),
+            cfg.workers,
+            cfg.time_series,
+            cfg.retry_failed,
+        )
+        print((out_dir / "trajectories" / "simulation_summary.md").read_text())
     return report
 
 

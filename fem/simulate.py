@@ -1,5 +1,10 @@
 """FE simulation steps of the reference paper (section 2.1) on a `Trajectory` mesh.
 
+    python -m fem.simulate input=data/cohort/default/P0000_L.npz [simulation.friction=0 ...]
+
+writes the breast with both steps (``<output>.npz``, a `Trajectory`) and an XDMF time series
+for ParaView (``<output>.xdmf``); `conf/simulate.yaml` lists the options.
+
 The breast model is the tissue body (decoupled neo-Hookean tetrahedra with nodal volumetric
 averaging) plus the skin, a 2 mm incompressible neo-Hookean membrane on the outer surface.
 
@@ -17,23 +22,33 @@ patient's gravity along -z (switchable).
 
 from __future__ import annotations
 
+import json
+import time
 from collections.abc import Mapping
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
+from pathlib import Path
 
+import hydra
 import numpy as np
+from hydra.utils import instantiate, to_absolute_path
 from numpy.typing import NDArray
+from omegaconf import DictConfig, OmegaConf
 
 from fem.assembly import HyperelasticBody, Model
 from fem.contact import RigidPlate
+from fem.io import load_breast
 from fem.material import lame_parameters
 from fem.membrane import SkinMembrane
+from fem.quality import signed_volume
 from fem.solver import (
     DEFAULT_NEWTON,
     GRAVITY_FORCE_DENSITY,
     NewtonSettings,
+    SolverError,
     load_ramp,
     nodal_body_force,
 )
+from fem.timeseries import write_time_series
 from fem.trajectory import NodeFlag, Tissue, Trajectory
 
 AP_AXIS = 1  #: anteroposterior axis (y, RAS+)
@@ -236,3 +251,174 @@ def _check_thickness(thickness: float, extent: float, source: str) -> None:
             f"{source}: compressed thickness {thickness:.1f} mm is not smaller than the breast's "
             f"cranio-caudal extent {extent:.1f} mm (or not positive)"
         )
+
+
+class SimulationFailed(RuntimeError):
+    """A breast could not be simulated; ``step`` says which step, ``seconds`` what it cost."""
+
+    def __init__(self, source: str, step: str, reason: str, seconds: dict[str, float]) -> None:
+        super().__init__(f"{source}: {step} failed: {reason}")
+        self.step, self.reason, self.seconds = step, reason, seconds
+
+
+@dataclass
+class Simulation:
+    """Both steps of the reference paper on one breast, with one set of parameters.
+
+    This is the ``simulation`` config group (`conf/simulation/default.yaml`); its keys are
+    these arguments.
+
+    Parameters
+    ----------
+    materials : mapping
+        Tissue name (``fat``, ``gland``, ``muscle``, ``skin``) -> `Material` or a mapping with
+        ``young`` (Pa) and optionally ``poisson``. Leaving out ``skin`` drops the membrane.
+    unloaded_steps : int
+        Recorded steps of the unloaded state (step 1).
+    compression_steps : int
+        Recorded steps of the compression (step 2).
+    compression_ratio : float, optional
+        Final compression ratio ``1 - thickness / extent``, with the cranio-caudal extent of
+        the skin in the unloaded state (the plates' first contact). Default: the breast's
+        ``metadata["target_compression_ratio"]`` (the virtual cohort's sampled ratio).
+    friction : float
+        Coulomb coefficient between skin and plates (0: frictionless).
+    gravity : bool
+        The standing patient's gravity during compression.
+    averaging : {"nodal", "element"}
+        Volumetric averaging (`fem.assembly.HyperelasticBody`); ``element`` locks.
+    """
+
+    materials: Mapping[str, Material | Mapping[str, float]] = field(
+        default_factory=lambda: dict(PAPER_MATERIALS)
+    )
+    unloaded_steps: int = 100
+    compression_steps: int = 70
+    compression_ratio: float | None = None
+    friction: float = FRICTION
+    gravity: bool = True
+    averaging: str = "nodal"
+
+    def __post_init__(self) -> None:
+        self.materials = {
+            name: m if isinstance(m, Material) else Material(**m)
+            for name, m in self.materials.items()
+        }
+        if self.compression_ratio is not None and not 0 < self.compression_ratio < 1:
+            raise ValueError(f"compression_ratio must lie in (0, 1), got {self.compression_ratio}")
+
+    def target_ratio(self, traj: Trajectory) -> float:
+        """The compression ratio to reach: the configured one or the breast's metadata."""
+        if self.compression_ratio is not None:
+            return float(self.compression_ratio)
+        if "target_compression_ratio" not in traj.metadata:
+            raise ValueError(
+                f"{traj.metadata.get('source', 'mesh')}: no compression ratio: set "
+                "simulation.compression_ratio or metadata field 'target_compression_ratio'"
+            )
+        return float(traj.metadata["target_compression_ratio"])
+
+    def __call__(self, traj: Trajectory) -> Trajectory:
+        """Simulate both steps; returns a copy of ``traj`` with its trajectories filled in.
+
+        Raises
+        ------
+        SimulationFailed
+            A step did not converge (the reason names the load factor and Newton's trouble).
+        ValueError
+            Bad input (missing material, no interface nodes, no compression ratio).
+        """
+        source = str(traj.metadata.get("source", "mesh"))
+        ratio = self.target_ratio(traj)
+        seconds: dict[str, float] = {}
+        t0 = time.perf_counter()
+        try:
+            unloaded = unloaded_state(
+                traj, self.materials, self.unloaded_steps, averaging=self.averaging
+            )
+        except SolverError as exc:
+            seconds["unloaded"] = time.perf_counter() - t0
+            raise SimulationFailed(source, "unloaded state", str(exc), seconds) from exc
+        seconds["unloaded"] = time.perf_counter() - t0
+        skin_z = unloaded[-1][traj.flagged(NodeFlag.SKIN), 2]
+        thickness = (1.0 - ratio) * float(np.ptp(skin_z))
+        t1 = time.perf_counter()
+        try:
+            result = compression(
+                traj,
+                unloaded[-1],
+                thickness,
+                self.materials,
+                self.compression_steps,
+                self.gravity,
+                self.averaging,
+                self.friction,
+            )
+        except SolverError as exc:
+            seconds["compression"] = time.perf_counter() - t1
+            raise SimulationFailed(source, "compression", str(exc), seconds) from exc
+        seconds["compression"] = time.perf_counter() - t1
+        reference = signed_volume(unloaded[-1], traj.cells).sum()
+        final = result.positions[-1]
+        metadata = {
+            **traj.metadata,
+            "simulation": {
+                "materials": {k: vars(m) for k, m in self.materials.items()},
+                "friction": self.friction,
+                "gravity": self.gravity,
+                "averaging": self.averaging,
+                "compression_ratio": float(result.compression_ratio[-1]),
+                "compressed_thickness_mm": thickness,
+                "volume_change": float(signed_volume(final, traj.cells).sum() / reference - 1),
+                "min_element_volume_ratio": float(
+                    (signed_volume(final, traj.cells) / signed_volume(traj.points, traj.cells)).min()
+                ),
+                "max_unloaded_displacement_mm": float(
+                    np.linalg.norm(unloaded[-1] - traj.points, axis=1).max()
+                ),
+                "seconds": seconds,
+            },
+        }
+        return replace(
+            traj,
+            unloaded=unloaded,
+            compressed=result.positions,
+            plates=result.plates,
+            compression_ratio=result.compression_ratio,
+            metadata=metadata,
+        )
+
+
+def simulate_file(cfg: DictConfig) -> Path:
+    """Run the command on a composed config; returns the output stem."""
+    source = Path(to_absolute_path(cfg.input))
+    stem = (
+        Path(to_absolute_path(cfg.output))
+        if cfg.output
+        else source.with_name(source.name.split(".")[0] + "_simulated")
+    )
+    traj = load_breast(
+        source,
+        OmegaConf.to_container(cfg.label_map),
+        list(cfg.spacing),
+        cfg.tissue_field,
+        instantiate(cfg.mesher),
+    )
+    traj.metadata.setdefault("source", str(source))
+    simulated = instantiate(cfg.simulation)(traj)
+    stem.parent.mkdir(parents=True, exist_ok=True)
+    if cfg.time_series:
+        write_time_series(simulated, stem.with_suffix(".xdmf"))
+    simulated.save(stem.with_suffix(".npz"))
+    print(json.dumps(simulated.metadata["simulation"], indent=2))
+    print(f"wrote {stem}.npz" + (f", {stem}.xdmf" if cfg.time_series else ""))
+    return stem
+
+
+@hydra.main(config_path="../conf", config_name="simulate", version_base="1.3")
+def main(cfg: DictConfig) -> None:
+    simulate_file(cfg)
+
+
+if __name__ == "__main__":
+    main()

@@ -15,7 +15,14 @@ CONF = str(Path(__file__).resolve().parents[1] / "conf")
 def _cfg(out_dir, *overrides):
     with initialize_config_dir(config_dir=CONF, version_base="1.3"):
         return compose(
-            "cohort", overrides=[f"out_dir={out_dir}", "n_patients=2", "workers=2", *overrides]
+            "cohort",
+            overrides=[
+                f"out_dir={out_dir}",
+                "n_patients=2",
+                "workers=2",
+                "simulate=false",
+                *overrides,
+            ],
         )
 
 

@@ -1,0 +1,241 @@
+"""The cohort command's simulation stage: both FE steps on every meshed breast, and its report.
+
+    python -m fem.cohort n_patients=258 out_dir=data/cohort/full simulate=true workers=2
+
+For each mesh ``<out_dir>/P0007_L.npz`` the stage writes ``<out_dir>/trajectories/P0007_L.npz``
+(the `Trajectory` with both steps, the training data of ``datamodules/``) or, when a step does
+not converge, ``P0007_L.failed.json`` with the step and the reason; a failed breast is never
+written as a result. Either file marks the breast as done, so a killed run resumes where it
+stopped (``retry_failed=true`` tries the failures again). Every file is written atomically.
+The report (``simulation.csv``, ``simulation.json``, ``simulation_summary.md`` and
+``simulation_summary.png``) is rebuilt from all finished breasts at the end of each run.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import time
+from collections.abc import Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from fem.atomic import atomic_path
+from fem.figures import simulation_summary_png
+from fem.simulate import Simulation, SimulationFailed
+from fem.timeseries import write_time_series
+from fem.trajectory import Trajectory
+
+COLUMNS = (
+    "name",
+    "status",
+    "step",
+    "reason",
+    "volume_cm3",
+    "n_elements",
+    "target_compression_ratio",
+    "compression_ratio",
+    "compressed_thickness_mm",
+    "volume_change",
+    "max_unloaded_displacement_mm",
+    "time_unloaded_s",
+    "time_compression_s",
+)
+
+
+def simulate_breast(
+    simulation: Simulation, mesh: Path, out_dir: Path, time_series: bool = False
+) -> dict:
+    """Simulate one meshed breast and write its result or its failure; returns its report row."""
+    traj = Trajectory.load(mesh)
+    traj.metadata.setdefault("source", str(mesh))
+    row = {
+        "name": mesh.stem,
+        "volume_cm3": traj.metadata.get("breast_volume_cm3", float("nan")),
+        "n_elements": traj.n_cells,
+        "target_compression_ratio": traj.metadata.get("target_compression_ratio", float("nan")),
+    }
+    try:
+        row["target_compression_ratio"] = simulation.target_ratio(traj)
+        result = simulation(traj)
+    except (SimulationFailed, ValueError) as exc:
+        failed = isinstance(exc, SimulationFailed)
+        seconds = exc.seconds if failed else {}
+        row.update(
+            status="failed",
+            step=exc.step if failed else "input",
+            reason=exc.reason if failed else str(exc),
+            time_unloaded_s=seconds.get("unloaded", float("nan")),
+            time_compression_s=seconds.get("compression", float("nan")),
+        )
+        with atomic_path(out_dir / f"{mesh.stem}.failed.json") as tmp:
+            tmp.write_text(json.dumps(row, indent=2))
+        return row
+    if time_series:
+        write_time_series(result, out_dir / f"{mesh.stem}.xdmf")
+    result.save(out_dir / f"{mesh.stem}.npz")
+    return {**row, **result_row(result.metadata)}
+
+
+def result_row(metadata: dict) -> dict:
+    """The report columns of a simulated breast from its metadata."""
+    sim = metadata["simulation"]
+    return {
+        "status": "ok",
+        "step": "",
+        "reason": "",
+        "compression_ratio": sim["compression_ratio"],
+        "compressed_thickness_mm": sim["compressed_thickness_mm"],
+        "volume_change": sim["volume_change"],
+        "max_unloaded_displacement_mm": sim["max_unloaded_displacement_mm"],
+        "time_unloaded_s": sim["seconds"]["unloaded"],
+        "time_compression_s": sim["seconds"]["compression"],
+    }
+
+
+def finished_rows(out_dir: Path, names: Sequence[str]) -> list[dict]:
+    """Report rows of the finished breasts among ``names`` (results and failures)."""
+    rows = []
+    for name in names:
+        failed = out_dir / f"{name}.failed.json"
+        result = out_dir / f"{name}.npz"
+        if result.exists():
+            with np.load(result, allow_pickle=False) as z:
+                meta = json.loads(str(z["metadata"]))
+                n_elements = len(z["cells"])
+            rows.append(
+                {
+                    "name": name,
+                    "volume_cm3": meta.get("breast_volume_cm3", float("nan")),
+                    "n_elements": n_elements,
+                    "target_compression_ratio": meta.get("target_compression_ratio"),
+                    **result_row(meta),
+                }
+            )
+        elif failed.exists():
+            rows.append({**dict.fromkeys(COLUMNS, float("nan")), **json.loads(failed.read_text())})
+    return rows
+
+
+def write_simulation_report(out_dir: Path, names: Sequence[str], wall_s: float | None) -> dict:
+    """``simulation.csv``/``.json``/``_summary.md``/``_summary.png`` from the finished breasts."""
+    rows = finished_rows(out_dir, names)
+    with atomic_path(out_dir / "simulation.csv") as tmp, open(tmp, "w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=COLUMNS, extrasaction="ignore")
+        writer.writeheader()
+        writer.writerows(rows)
+    ok = [r for r in rows if r["status"] == "ok"]
+    failed = [r for r in rows if r["status"] != "ok"]
+
+    def stats(values: Sequence[float]) -> dict[str, float]:
+        v = np.asarray(values, float)
+        if not len(v):
+            return {}
+        q = np.percentile(v, [0, 50, 95, 100])
+        return dict(zip(("min", "median", "p95", "max"), map(float, q), strict=True))
+
+    report = {
+        "n_breasts": len(names),
+        "n_finished": len(rows),
+        "n_converged": len(ok),
+        "n_failed": len(failed),
+        "converged_share": len(ok) / len(rows) if rows else float("nan"),
+        "reached_target": sum(
+            abs(r["compression_ratio"] - r["target_compression_ratio"]) < 1e-6 for r in ok
+        ),
+        "compression_ratio": stats([r["compression_ratio"] for r in ok]),
+        "volume_change": stats([r["volume_change"] for r in ok]),
+        "seconds_unloaded": stats([r["time_unloaded_s"] for r in ok]),
+        "seconds_compression": stats([r["time_compression_s"] for r in ok]),
+        "seconds_total": stats([r["time_unloaded_s"] + r["time_compression_s"] for r in ok]),
+        "failures": [{k: r[k] for k in ("name", "step", "reason")} for r in failed],
+    }
+    if wall_s is not None:
+        report["wall_s_last_run"] = wall_s
+    with atomic_path(out_dir / "simulation.json") as tmp:
+        tmp.write_text(json.dumps(report, indent=2))
+    with atomic_path(out_dir / "simulation_summary.md") as tmp:
+        tmp.write_text(simulation_markdown(report))
+    if rows:
+        simulation_summary_png(rows, out_dir / "simulation_summary.png")
+    return report
+
+
+def simulation_markdown(report: dict) -> str:
+    """The simulation report as a Markdown table, then the failures."""
+
+    def q(key: str, fmt: str = ".1f", scale: float = 1.0) -> str:
+        s = report[key]
+        if not s:
+            return "-"
+        return (
+            f"{scale * s['median']:{fmt}} (min {scale * s['min']:{fmt}}, 95 % "
+            f"{scale * s['p95']:{fmt}}, max {scale * s['max']:{fmt}})"
+        )
+
+    lines = [
+        "| simulation | value |",
+        "| --- | --- |",
+        f"| breasts finished / in cohort | {report['n_finished']} / {report['n_breasts']} |",
+        f"| converged (both steps, target thickness reached) | {report['n_converged']} "
+        f"({100 * report['converged_share']:.1f} %) |",
+        f"| failed | {report['n_failed']} |",
+        f"| final compression ratio, %: median | {q('compression_ratio', '.0f', 100)} |",
+        f"| volume change at the last step, % | {q('volume_change', '.2f', 100)} |",
+        f"| time, unloaded state (s) | {q('seconds_unloaded')} |",
+        f"| time, compression (s) | {q('seconds_compression')} |",
+        f"| time per breast, both steps (s) | {q('seconds_total')} |",
+    ]
+    if report["failures"]:
+        lines += ["", "| failed breast | step | reason |", "| --- | --- | --- |"]
+        lines += [f"| {f['name']} | {f['step']} | {f['reason']} |" for f in report["failures"]]
+    return "\n".join(lines) + "\n"
+
+
+def simulate_cohort(
+    mesh_dir: Path,
+    names: Sequence[str],
+    simulation: Simulation,
+    workers: int = 2,
+    time_series: bool = False,
+    retry_failed: bool = False,
+) -> dict:
+    """Simulate every unfinished breast of ``names`` (meshes in ``mesh_dir``) in parallel.
+
+    Results go to ``mesh_dir / "trajectories"``; returns the report.
+    """
+    out_dir = mesh_dir / "trajectories"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    if retry_failed:
+        for name in names:
+            (out_dir / f"{name}.failed.json").unlink(missing_ok=True)
+    todo = [
+        n
+        for n in names
+        if (mesh_dir / f"{n}.npz").exists()
+        and not (out_dir / f"{n}.npz").exists()
+        and not (out_dir / f"{n}.failed.json").exists()
+    ]
+    t0 = time.perf_counter()
+    with (
+        ProcessPoolExecutor(max_workers=workers) as pool,
+        tqdm(
+            total=len(names),
+            initial=len(names) - len(todo),
+            unit="breast",
+            desc=f"simulate -> {out_dir}",
+        ) as bar,
+    ):
+        futures = {
+            pool.submit(simulate_breast, simulation, mesh_dir / f"{n}.npz", out_dir, time_series): n
+            for n in todo
+        }
+        for fut in as_completed(futures):
+            row = fut.result()
+            if row["status"] != "ok":
+                tqdm.write(f"FAILED {row['name']} ({row['step']}): {row['reason']}")
+            bar.update()
+    return write_simulation_report(out_dir, names, time.perf_counter() - t0)

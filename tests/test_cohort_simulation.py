@@ -1,0 +1,86 @@
+"""The cohort command's simulation stage and `python -m fem.simulate` (few recorded steps)."""
+
+import json
+
+import meshio
+import numpy as np
+import pytest
+from hydra import compose, initialize_config_dir
+from test_cohort import CONF, _cfg
+
+from fem.cohort import run_cohort
+from fem.simulate import simulate_file
+from fem.trajectory import NodeFlag, Trajectory
+
+FEW_STEPS = ("simulation.unloaded_steps=3", "simulation.compression_steps=4")
+
+
+@pytest.fixture(scope="module")
+def simulated(tmp_path_factory):
+    out = tmp_path_factory.mktemp("simulated")
+    report = run_cohort(_cfg(out, "n_patients=1", "simulate=true", "figures=false", *FEW_STEPS))
+    return out, report
+
+
+def test_trajectories_and_report(simulated):
+    out, report = simulated
+    sim = report["simulation"]
+    assert sim["n_converged"] == 2 and sim["n_failed"] == 0 and sim["reached_target"] == 2
+    names = {p.name for p in (out / "trajectories").iterdir()}
+    assert {"P0000_L.npz", "P0000_R.npz", "simulation.csv", "simulation.json"} <= names
+    assert {"simulation_summary.md", "simulation_summary.png"} <= names
+    assert not [n for n in names if n.startswith(".")]  # no temporary files left
+    traj = Trajectory.load(out / "trajectories" / "P0000_L.npz")
+    assert traj.unloaded.shape == (3, traj.n_nodes, 3)
+    assert traj.compressed.shape == (4, traj.n_nodes, 3) and traj.plates.shape == (4, 2, 2)
+    # The target ratio is reached on the unloaded shape's cranio-caudal extent.
+    assert traj.compression_ratio[-1] == pytest.approx(traj.metadata["target_compression_ratio"])
+    skin = traj.flagged(NodeFlag.SKIN)
+    lower, upper = traj.plates[-1, :, 1]
+    covered = traj.compressed[-1][skin, 1] >= traj.plates[-1, 0, 0]
+    z = traj.compressed[-1][skin[covered], 2]
+    assert z.min() >= lower - 1e-9 and z.max() <= upper + 1e-9  # nothing inside a plate
+    extent = np.ptp(traj.unloaded[-1][skin, 2])
+    assert upper - lower == pytest.approx((1 - traj.compression_ratio[-1]) * extent)
+    rows = (out / "trajectories" / "simulation.csv").read_text().splitlines()
+    assert len(rows) == 3 and rows[0].startswith("name,status,step,reason")
+
+
+def test_resume_and_failure_recorded(simulated):
+    out, _ = simulated
+    done = out / "trajectories" / "P0000_L.npz"
+    stamp = done.stat().st_mtime_ns
+    (out / "trajectories" / "P0000_R.npz").unlink()
+    # Without gland parameters the breast is refused (bad input): recorded, never written.
+    report = run_cohort(
+        _cfg(out, "n_patients=1", "simulate=true", "~simulation.materials.gland", *FEW_STEPS)
+    )
+    assert done.stat().st_mtime_ns == stamp  # finished breasts are not redone
+    failure = json.loads((out / "trajectories" / "P0000_R.failed.json").read_text())
+    assert failure["step"] == "input" and "tissue 'gland'" in failure["reason"]
+    assert not (out / "trajectories" / "P0000_R.npz").exists()
+    assert report["simulation"]["n_failed"] == 1
+    assert "| P0000_R | input |" in (out / "trajectories" / "simulation_summary.md").read_text()
+
+
+def test_simulate_command_writes_trajectory_and_time_series(simulated, tmp_path):
+    out, _ = simulated
+    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
+        cfg = compose(
+            "simulate",
+            overrides=[
+                f"input={out / 'P0000_L.npz'}",
+                f"output={tmp_path / 'case'}",
+                "simulation.friction=0",
+                "simulation.compression_ratio=0.3",
+                "simulation.unloaded_steps=2",
+                "simulation.compression_steps=2",
+            ],
+        )
+    simulate_file(cfg)
+    traj = Trajectory.load(tmp_path / "case.npz")
+    assert traj.compression_ratio[-1] == pytest.approx(0.3)
+    assert traj.metadata["simulation"]["friction"] == 0
+    times = meshio.xdmf.TimeSeriesReader(tmp_path / "case.xdmf")
+    _, _ = times.read_points_cells()
+    assert times.num_steps == 1 + 2 + 2
