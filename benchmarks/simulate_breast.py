@@ -1,20 +1,21 @@
-"""Time both FE steps on cohort breasts (first version; issue 3 adds repeats and friction).
+"""Time both FE steps per breast: the unloaded state and the compression with friction.
 
-    python benchmarks/simulate_breast.py data/cohort/full/P0001_L.npz data/cohort/full/P0002_R.npz
+    python benchmarks/simulate_breast.py data/cohort/full/P0001_L.npz ... --repeats 5
 
-For each mesh: the unloaded state (100 recorded steps) and the frictionless compression to the
-phantom's compressed thickness (70 recorded steps), with wall times, the final compression
-ratio and the volume change.
+For each mesh, ``--repeats`` runs of `fem.simulate.Simulation` with the paper's parameters
+(100 unloaded-state steps, 70 compression steps to the breast's target compression ratio,
+Coulomb friction 0.25, gravity on) in this one process, so on one core. Prints per breast the
+median wall time of each step and of both, the final compression ratio and the volume change,
+then the median over the breasts. Use it on an otherwise idle machine.
 """
 
 from __future__ import annotations
 
 import argparse
-import time
+import statistics
+from pathlib import Path
 
-from fem.quality import signed_volume
-from fem.simulate import compression, unloaded_state
-from fem.solver import SolverError
+from fem.simulate import Simulation, SimulationFailed
 from fem.trajectory import Trajectory
 
 
@@ -23,31 +24,40 @@ def main() -> None:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     ap.add_argument("meshes", nargs="+", help="Trajectory .npz files from the cohort command")
+    ap.add_argument("--repeats", type=int, default=5, help="runs per breast (median reported)")
+    ap.add_argument("--friction", type=float, default=0.25)
     args = ap.parse_args()
+    simulation = Simulation(friction=args.friction)
+    totals = []
+    print(
+        "| breast | volume (cm^3) | elements | unloaded (s) | compression (s) | both (s) "
+        "| CR | volume change |"
+    )
+    print("| --- | --- | --- | --- | --- | --- | --- | --- |")
     for path in args.meshes:
         traj = Trajectory.load(path)
-        t0 = time.perf_counter()
-        unloaded = unloaded_state(traj, n_steps=100)
-        t1 = time.perf_counter()
-        line = f"{path}: {traj.metadata.get('breast_volume_cm3', float('nan')):.0f} cm^3, unloaded {t1 - t0:.1f} s"
+        runs = []
         try:
-            result = compression(
-                traj, unloaded[-1], traj.metadata["compressed_thickness_mm"], n_steps=70
-            )
-        except SolverError as exc:
-            print(
-                f"{line}, compression FAILED after {time.perf_counter() - t1:.1f} s: {exc}",
-                flush=True,
-            )
+            for _ in range(args.repeats):
+                result = simulation(traj)
+                runs.append(result.metadata["simulation"])
+        except SimulationFailed as exc:
+            print(f"| {path} | failed: {exc} |", flush=True)
             continue
-        volume = (
-            signed_volume(result.positions[-1], traj.cells).sum()
-            / signed_volume(unloaded[-1], traj.cells).sum()
-        )
+        unloaded = statistics.median(r["seconds"]["unloaded"] for r in runs)
+        compression = statistics.median(r["seconds"]["compression"] for r in runs)
+        both = statistics.median(sum(r["seconds"].values()) for r in runs)
+        totals.append(both)
         print(
-            f"{line}, compression {time.perf_counter() - t1:.1f} s, compression ratio "
-            f"{result.compression_ratio[-1]:.2f}, volume change {100 * (volume - 1):+.2f} %",
+            f"| {Path(path).stem} | {traj.metadata.get('breast_volume_cm3', 0):.0f} "
+            f"| {traj.n_cells} | {unloaded:.2f} | {compression:.2f} | {both:.2f} "
+            f"| {runs[-1]['compression_ratio']:.2f} | {100 * runs[-1]['volume_change']:+.2f} % |",
             flush=True,
+        )
+    if totals:
+        print(
+            f"\nmedian over {len(totals)} breasts of the median of {args.repeats} runs: "
+            f"{statistics.median(totals):.2f} s per breast (both steps)"
         )
 
 
