@@ -73,6 +73,13 @@ class NewtonSettings:
         Smallest line-search step before the increment is declared failed.
     min_jacobian : float
         Elements with ``det F`` below this count as inverted.
+    max_contraction : float
+        Newton first steps with the stored factorization of an earlier tangent (modified
+        Newton: no assembly, one back-substitution; held DOFs stay, and a step through a
+        bound is not taken); once the residual shrinks by less than this factor per step, or
+        the line search would cut such a step, it assembles the tangent and factorizes
+        afresh. 0 disables the reuse (0.5 against 0: 6 instead of 101 tangents and half the
+        time for a breast's unloaded state, positions within 1e-6 mm).
     """
 
     tolerance: float = 1e-6
@@ -80,6 +87,7 @@ class NewtonSettings:
     max_iterations: int = 25
     min_step: float = 1.0 / 64
     min_jacobian: float = 1e-3
+    max_contraction: float = 0.5
 
 
 class ReusedFactorization:
@@ -238,11 +246,12 @@ def newton(
         No convergence, or the line search could not find an admissible descent step.
     """
     x = np.array(x, float)
+    lower = upper = None
     if hasattr(body, "bounds"):
         lower, upper = body.bounds(x)
         lower[~free], upper[~free] = -np.inf, np.inf
-    else:
-        lower = upper = None
+        if np.isneginf(lower).all() and np.isposinf(upper).all():
+            lower = upper = None
     flat = x.reshape(-1)
     if lower is not None:
         flat = np.clip(flat, lower, upper)
@@ -259,6 +268,8 @@ def newton(
         raise SolverError("the start (projected onto the bounds) has inverted elements")
 
     pi = potential(x)
+    reuse = settings.max_contraction > 0  # modified Newton steps allowed
+    previous = np.inf  # residual norm before the last modified step
     for it in range(settings.max_iterations):
         g = body.internal_force(x) - f_ext
         held = np.zeros_like(free)
@@ -267,22 +278,37 @@ def newton(
                 ((flat <= lower + ON_BOUND) & (g > 0)) | ((flat >= upper - ON_BOUND) & (g < 0))
             )
         r = np.where(held, 0.0, g)[free]
+        norm = np.linalg.norm(r)
         scale = max(np.linalg.norm(f_ext[free]), np.linalg.norm((g + f_ext)[free]), 1e-30)
-        if np.linalg.norm(r) <= settings.tolerance * scale:
+        if norm <= settings.tolerance * scale:
             return x, it
-        K = body.tangent(x)[free][:, free]
-        dx, held = newton_step(K, g, flat, free, held, lower, upper, linear)
-        slope = g[free] @ dx
+        if norm > settings.max_contraction * previous:  # modified steps stall: refactorize
+            reuse, linear.stale = False, True
+        modified = reuse and linear.lu is not None and linear.lu.shape == (r.size, r.size)
+        if modified:  # a step with an earlier tangent's factorization: no assembly
+            dx, previous = np.where(held[free], 0.0, linear.lu.solve(-r)), norm
+            slope = g[free] @ dx
+            modified = slope < 0
+            if lower is not None:  # ... that must not carry a DOF through a bound
+                trial = flat[free] + dx
+                modified &= bool(
+                    np.all(trial >= lower[free] - ON_BOUND)
+                    and np.all(trial <= upper[free] + ON_BOUND)
+                )
+        if not modified:
+            K = body.tangent(x)[free][:, free]
+            dx, held = newton_step(K, g, flat, free, held, lower, upper, linear)
+            slope, previous = g[free] @ dx, np.inf
         shift = 1e-3
         while (
-            slope >= 0
+            slope >= 0 and not modified
         ):  # indefinite tangent (buckling skin, instability): shift until dx descends
             shifted = K + shift * sparse.diags(np.abs(K.diagonal()))
             dx = splu(constrained(shifted, ~held[free]).tocsc(), permc_spec="MMD_AT_PLUS_A").solve(
                 -np.where(held, 0.0, g)[free]
             )
             slope, shift = g[free] @ dx, 10 * shift
-        step = 1.0
+        step, rejected = 1.0, False
         while True:
             trial = flat.copy()
             trial[free] += step * dx
@@ -294,11 +320,16 @@ def newton(
                 pi_trial = potential(trial_x)
                 if pi_trial <= pi + 1e-4 * decrease + 1e-12 * abs(pi):
                     break
+            if modified:  # no cutting a modified step: assemble the tangent instead
+                reuse, linear.stale, rejected = False, True, True
+                break
             step *= 0.5
             if step < settings.min_step:
                 raise SolverError(
                     f"line search failed at Newton iteration {it} (|r| = {np.linalg.norm(r):.3g})"
                 )
+        if rejected:
+            continue
         moved = np.abs(trial - flat).max()
         x, flat, pi = trial_x, trial, pi_trial
         if step == 1.0 and moved <= settings.step_tolerance:
