@@ -371,7 +371,9 @@ class Simulation:
                 "compressed_thickness_mm": thickness,
                 "volume_change": float(signed_volume(final, traj.cells).sum() / reference - 1),
                 "min_element_volume_ratio": float(
-                    (signed_volume(final, traj.cells) / signed_volume(traj.points, traj.cells)).min()
+                    (
+                        signed_volume(final, traj.cells) / signed_volume(traj.points, traj.cells)
+                    ).min()
                 ),
                 "max_unloaded_displacement_mm": float(
                     np.linalg.norm(unloaded[-1] - traj.points, axis=1).max()
