@@ -1,0 +1,195 @@
+"""Per-node, per-step features of the reference paper (section 2.2) and its normalisation (eq. 1).
+
+One instance is one node at one recorded step. The unloaded-state model sees 11 features, the
+compression model 22 (`UNLOADED_FEATURES`, `COMPRESSION_FEATURES`; units and definitions in
+docs/features.md); the targets are the node's coordinates at that step. Coordinates, plate
+positions and targets are z-scored per breast (equation 1): ``(v - mu) / sigma`` with ``mu``
+the mean node position of the step's input geometry and ``sigma`` the root-mean-square
+distance of its nodes from ``mu`` (one scale for all three axes, so shapes are not distorted);
+`Normalization` keeps both to map predictions back to millimetres.
+
+The input geometry of the unloaded-state step is the imaged mesh (``points``); that of the
+compression step is the unloaded shape (``unloaded[-1]``), the compression's stress-free
+reference, so a predicted unloaded state can feed the compression model.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from fem.quality import signed_volume
+from fem.trajectory import NodeFlag, Tissue, Trajectory
+
+TISSUES = (Tissue.FAT, Tissue.GLAND, Tissue.MUSCLE)
+
+#: Features 1-11 (unloaded state and compression).
+UNLOADED_FEATURES = (
+    "x",
+    "y",
+    "z",
+    "step",
+    "volume_fraction_fat",
+    "volume_fraction_gland",
+    "volume_fraction_muscle",
+    "volume_mm3",
+    "element_fraction_fat",
+    "element_fraction_gland",
+    "element_fraction_muscle",
+)
+
+#: Features 1-22 (compression).
+COMPRESSION_FEATURES = (
+    *UNLOADED_FEATURES,
+    "upper_plate_displacement",
+    "lower_plate_edge_y",
+    "lower_plate_edge_z",
+    "upper_plate_edge_y",
+    "upper_plate_edge_z",
+    "upper_contact",
+    "skin",
+    "tissue_bit_2_gland",
+    "tissue_bit_1_fat",
+    "tissue_bit_0_muscle",
+    "laterality",
+)
+
+#: Value of feature 22 per laterality.
+LATERALITY = {"L": 0.0, "R": 1.0}
+
+
+@dataclass(frozen=True)
+class Normalization:
+    """Per-breast z-score of coordinates (equation 1): ``(v - mean) / scale``.
+
+    Attributes
+    ----------
+    mean : (3,) float64
+        Mean node position of the input geometry, mm.
+    scale : float
+        Root-mean-square distance of the nodes from ``mean``, mm.
+    """
+
+    mean: NDArray
+    scale: float
+
+    @classmethod
+    def of(cls, points: NDArray) -> Normalization:
+        """The normalisation of a geometry ``points`` (N, 3), mm."""
+        mean = points.mean(axis=0)
+        return cls(mean, float(np.sqrt(((points - mean) ** 2).sum(axis=1).mean())))
+
+    def apply(self, v: NDArray, axes: slice | list[int] = slice(None)) -> NDArray:
+        """Normalise coordinates ``v`` (..., k) whose last axis holds the axes ``axes``."""
+        return (v - self.mean[axes]) / self.scale
+
+    def invert(self, v: NDArray, axes: slice | list[int] = slice(None)) -> NDArray:
+        """Millimetres of normalised coordinates ``v`` (..., k)."""
+        return v * self.scale + self.mean[axes]
+
+
+def tissue_descriptors(traj: Trajectory) -> NDArray[np.float64]:
+    """Features 5-11 of a breast: volume fractions (fat, gland, muscle), mesh volume (mm^3),
+    element fractions (fat, gland, muscle), from the mesh itself. Shape (7,)."""
+    volumes = signed_volume(traj.points, traj.cells)
+    total = volumes.sum()
+    volume_fraction = [volumes[traj.tissue == t].sum() / total for t in TISSUES]
+    element_fraction = [np.mean(traj.tissue == t) for t in TISSUES]
+    return np.array([*volume_fraction, total, *element_fraction])
+
+
+def _base_features(
+    geometry: NDArray, n_steps: int, descriptors: NDArray, norm: Normalization
+) -> NDArray[np.float32]:
+    """Features 1-11 for every step and node, shape (T, N, 11)."""
+    n = len(geometry)
+    out = np.empty((n_steps, n, len(UNLOADED_FEATURES)), np.float32)
+    out[:, :, 0:3] = norm.apply(geometry)
+    out[:, :, 3] = np.arange(1, n_steps + 1)[:, None]
+    out[:, :, 4:11] = descriptors
+    return out
+
+
+def unloaded_features(
+    traj: Trajectory,
+) -> tuple[NDArray[np.float32], NDArray[np.float32], Normalization]:
+    """Unloaded-state instances of a simulated breast.
+
+    Returns
+    -------
+    features : (T1, N, 11) float32
+        `UNLOADED_FEATURES` per step and node.
+    targets : (T1, N, 3) float32
+        Normalised node coordinates per step.
+    normalization : Normalization
+        Of the imaged geometry; ``normalization.invert(targets)`` gives millimetres.
+    """
+    norm = Normalization.of(traj.points)
+    features = _base_features(traj.points, len(traj.unloaded), tissue_descriptors(traj), norm)
+    return features, norm.apply(traj.unloaded).astype(np.float32), norm
+
+
+def compression_features(
+    traj: Trajectory,
+) -> tuple[NDArray[np.float32], NDArray[np.float32], Normalization]:
+    """Compression instances of a simulated breast.
+
+    Returns
+    -------
+    features : (T2, N, 22) float32
+        `COMPRESSION_FEATURES` per step and node.
+    targets : (T2, N, 3) float32
+        Normalised node coordinates per step.
+    normalization : Normalization
+        Of the unloaded shape (the compression's input geometry).
+
+    Raises
+    ------
+    ValueError
+        The breast has no unloaded state, or its metadata no laterality.
+    """
+    source = str(traj.metadata.get("source", "trajectory"))
+    if not len(traj.unloaded) or not len(traj.compressed):
+        raise ValueError(f"{source}: not simulated (fields 'unloaded'/'compressed' are empty)")
+    laterality = traj.metadata.get("laterality")
+    if laterality not in LATERALITY:
+        raise ValueError(
+            f"{source}: metadata field 'laterality' must be 'L' or 'R', got {laterality!r}"
+        )
+    geometry = traj.unloaded[-1]
+    norm = Normalization.of(geometry)
+    n_steps = len(traj.compressed)
+    base = _base_features(geometry, n_steps, tissue_descriptors(traj), norm)
+    lower, upper = traj.plates[:, 0, 1], traj.plates[:, 1, 1]
+    first_contact = lower + (upper - lower) / (1.0 - traj.compression_ratio)  # upper at CR 0
+    code = traj.node_tissue_code
+    per_step = np.stack(
+        [
+            (first_contact - upper) / norm.scale,  # 12: plate travel, normalised
+            *norm.apply(traj.plates[:, 0], [1, 2]).T,  # 13-14: lower edge (y, z)
+            *norm.apply(traj.plates[:, 1], [1, 2]).T,  # 15-16: upper edge (y, z)
+        ],
+        axis=1,
+    )  # (T2, 5)
+    per_node = np.stack(
+        [
+            (traj.node_flags & NodeFlag.UPPER_CONTACT) > 0,  # 17
+            (traj.node_flags & NodeFlag.SKIN) > 0,  # 18
+            (code >> 2) & 1,  # 19: gland bit
+            (code >> 1) & 1,  # 20: fat bit
+            code & 1,  # 21: muscle bit
+            np.full(traj.n_nodes, LATERALITY[laterality]),  # 22
+        ],
+        axis=1,
+    ).astype(np.float32)  # (N, 6)
+    features = np.concatenate(
+        [
+            base,
+            np.broadcast_to(per_step[:, None, :], (n_steps, traj.n_nodes, 5)),
+            np.broadcast_to(per_node[None], (n_steps, traj.n_nodes, 6)),
+        ],
+        axis=2,
+    ).astype(np.float32)
+    return features, norm.apply(traj.compressed).astype(np.float32), norm
