@@ -135,6 +135,32 @@ def chest_wall_free_dofs(
     return free
 
 
+def boundary_free_dofs(
+    traj: Trajectory,
+    source: str,
+    fixed: NDArray | None = None,
+    translations: tuple[int, ...] = (0, 2),
+) -> NDArray[np.bool_]:
+    """Free-DOF mask (N, 3): the chest-wall condition, or the clamped nodes ``fixed``.
+
+    Raises
+    ------
+    ValueError
+        A ``fixed`` index outside the mesh, or no interface nodes without ``fixed``.
+    """
+    if fixed is None:
+        return chest_wall_free_dofs(traj, source, translations)
+    fixed = np.asarray(fixed, np.int64)
+    if fixed.size == 0 or fixed.min() < 0 or fixed.max() >= traj.n_nodes:
+        raise ValueError(
+            f"{source}: fixed nodes must be indices in [0, {traj.n_nodes}), got {fixed.size} "
+            f"indices in [{fixed.min(initial=0)}, {fixed.max(initial=0)}]"
+        )
+    free = np.ones((traj.n_nodes, 3), bool)
+    free[fixed] = False
+    return free
+
+
 def unloaded_state(
     traj: Trajectory,
     materials: Mapping[str, Material] = PAPER_MATERIALS,
@@ -142,8 +168,12 @@ def unloaded_state(
     force_density: float = GRAVITY_FORCE_DENSITY,
     averaging: str = "nodal",
     settings: NewtonSettings = DEFAULT_NEWTON,
+    fixed: NDArray | None = None,
 ) -> NDArray[np.float64]:
     """Step 1: reverse the prone gravity, ramped, recording ``n_steps`` equal load steps.
+
+    ``fixed`` (node indices) clamps those nodes instead of the chest-wall condition
+    (`chest_wall_free_dofs`), for meshes without muscle/breast interface nodes.
 
     Returns
     -------
@@ -151,7 +181,8 @@ def unloaded_state(
         Node positions, mm, at load factors ``1/n_steps, 2/n_steps, ..., 1``.
     """
     model = breast_model(traj, materials, averaging)
-    free = chest_wall_free_dofs(traj, str(traj.metadata.get("source", "mesh"))).ravel()
+    source = str(traj.metadata.get("source", "mesh"))
+    free = boundary_free_dofs(traj, source, fixed, translations=(0, 2)).ravel()
     direction = np.zeros(3)
     direction[AP_AXIS] = -1.0  # posterior: undo the anterior pull of prone gravity
     f = nodal_body_force(model.body, force_density * direction)
@@ -194,6 +225,7 @@ def compression(
     averaging: str = "nodal",
     friction: float = FRICTION,
     settings: NewtonSettings = DEFAULT_NEWTON,
+    fixed: NDArray | None = None,
 ) -> CompressionResult:
     """Step 2: compress between two rigid plates perpendicular to z with Coulomb friction.
 
@@ -203,7 +235,8 @@ def compression(
     ``n_steps`` recorded steps. Both plates reach back to the chest wall (their chest-side
     edge is at the most posterior muscle-interface node). The standing patient's gravity
     along -z (when ``gravity`` is true) is ramped with the plate travel. Both plates have the
-    Coulomb coefficient ``friction`` (0: frictionless).
+    Coulomb coefficient ``friction`` (0: frictionless). ``fixed`` as in `unloaded_state`
+    (the plate edges are then at the most anterior clamped node).
     """
     source = str(traj.metadata.get("source", "mesh"))
     moved = replace(traj, points=np.asarray(start, float))
@@ -211,9 +244,11 @@ def compression(
     skin_nodes = traj.flagged(NodeFlag.SKIN)
     bottom, top = float(start[skin_nodes, 2].min()), float(start[skin_nodes, 2].max())
     _check_thickness(compressed_thickness, top - bottom, source)
-    free = chest_wall_free_dofs(moved, source, translations=(0,))
-    interface = traj.flagged(NodeFlag.MUSCLE_INTERFACE)
-    edge = float(start[interface, AP_AXIS].min())
+    free = boundary_free_dofs(moved, source, fixed, translations=(0,))
+    if fixed is None:  # the plates reach back to the (sliding) chest wall
+        edge = float(start[traj.flagged(NodeFlag.MUSCLE_INTERFACE), AP_AXIS].min())
+    else:  # ... or stop in front of the clamped nodes, which they could only crush
+        edge = float(start[np.asarray(fixed), AP_AXIS].max())
     n = len(start)
     # Both plates touch from the start (the lowest and the highest skin node): they hold the
     # breast vertically, so the chest-wall pins fix x only and carry no plate or gravity load.
@@ -287,6 +322,11 @@ class Simulation:
         The standing patient's gravity during compression.
     averaging : {"nodal", "element"}
         Volumetric averaging (`fem.assembly.HyperelasticBody`); ``element`` locks.
+    prone_gravity : float
+        Body force removed in step 1, Pa/mm (rho g; 0 skips the unloaded state's load).
+    fixed_nodes : str, optional
+        A text or ``.npy`` file of node indices to clamp instead of the chest-wall condition
+        (sliding muscle/breast interface), for a model without muscle elements.
     """
 
     materials: Mapping[str, Material | Mapping[str, float]] = field(
@@ -298,6 +338,8 @@ class Simulation:
     friction: float = FRICTION
     gravity: bool = True
     averaging: str = "nodal"
+    prone_gravity: float = GRAVITY_FORCE_DENSITY
+    fixed_nodes: str | None = None
 
     def __post_init__(self) -> None:
         self.materials = {
@@ -330,11 +372,24 @@ class Simulation:
         """
         source = str(traj.metadata.get("source", "mesh"))
         ratio = self.target_ratio(traj)
+        fixed = None
+        if self.fixed_nodes is not None:
+            path = Path(self.fixed_nodes)
+            try:
+                fixed = np.load(path) if path.suffix == ".npy" else np.loadtxt(path, dtype=np.int64)
+            except (OSError, ValueError) as exc:
+                raise ValueError(f"{path}: cannot read fixed node indices: {exc}") from exc
+            fixed = np.atleast_1d(fixed).astype(np.int64)
         seconds: dict[str, float] = {}
         t0 = time.perf_counter()
         try:
             unloaded = unloaded_state(
-                traj, self.materials, self.unloaded_steps, averaging=self.averaging
+                traj,
+                self.materials,
+                self.unloaded_steps,
+                self.prone_gravity,
+                self.averaging,
+                fixed=fixed,
             )
         except SolverError as exc:
             seconds["unloaded"] = time.perf_counter() - t0
@@ -353,6 +408,7 @@ class Simulation:
                 self.gravity,
                 self.averaging,
                 self.friction,
+                fixed=fixed,
             )
         except SolverError as exc:
             seconds["compression"] = time.perf_counter() - t1
@@ -367,6 +423,8 @@ class Simulation:
                 "friction": self.friction,
                 "gravity": self.gravity,
                 "averaging": self.averaging,
+                "prone_gravity": self.prone_gravity,
+                "fixed_nodes": self.fixed_nodes,
                 "compression_ratio": float(result.compression_ratio[-1]),
                 "compressed_thickness_mm": thickness,
                 "volume_change": float(signed_volume(final, traj.cells).sum() / reference - 1),

@@ -98,3 +98,39 @@ def test_compression_between_plates(breast_mesh, unloaded, compressed):
 def test_compression_thicker_than_breast(breast_mesh, unloaded):
     with pytest.raises(ValueError, match=r"compressed thickness 900\.0 mm is not smaller"):
         compression(breast_mesh, unloaded[-1], 900.0, n_steps=2)
+
+
+def test_clamped_nodes_instead_of_the_chest_wall(breast_mesh, tmp_path):
+    """A model without interface flags runs with a user's clamped-node file; bad indices and
+    an unreadable file are refused with the file named. The plates stop in front of the
+    clamped nodes."""
+    from dataclasses import replace
+
+    from fem.simulate import Simulation
+
+    wall = breast_mesh.flagged(NodeFlag.MUSCLE_INTERFACE)
+    bare = replace(
+        breast_mesh,
+        node_flags=breast_mesh.node_flags & ~np.uint8(NodeFlag.MUSCLE_INTERFACE),
+        metadata={**breast_mesh.metadata, "source": "user.vtu"},
+    )
+    np.savetxt(tmp_path / "wall.txt", wall, fmt="%d")
+    sim = Simulation(
+        unloaded_steps=2,
+        compression_steps=3,
+        compression_ratio=0.1,
+        fixed_nodes=str(tmp_path / "wall.txt"),
+    )
+    out = sim(bare)
+    np.testing.assert_array_equal(
+        out.unloaded[:, wall], np.broadcast_to(bare.points[wall], (2, len(wall), 3))
+    )
+    np.testing.assert_allclose(
+        out.compressed[:, wall], np.broadcast_to(out.unloaded[-1][wall], (3, len(wall), 3))
+    )
+    assert out.compression_ratio[-1] == pytest.approx(0.1)
+    np.savetxt(tmp_path / "bad.txt", [0, 10**6], fmt="%d")
+    with pytest.raises(ValueError, match=r"user\.vtu: fixed nodes must be indices in \[0, "):
+        Simulation(fixed_nodes=str(tmp_path / "bad.txt"), compression_ratio=0.3)(bare)
+    with pytest.raises(ValueError, match=r"missing\.txt: cannot read fixed node indices"):
+        Simulation(fixed_nodes=str(tmp_path / "missing.txt"), compression_ratio=0.3)(bare)
