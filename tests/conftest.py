@@ -7,7 +7,7 @@ import pytest
 
 from fem.mesh import Mesher
 from fem.phantom import LabelVolume, PhantomGenerator
-from fem.trajectory import Tissue
+from fem.trajectory import Tissue, Trajectory
 
 
 @pytest.fixture(scope="session")
@@ -55,3 +55,30 @@ def assert_exact_derivatives(
     K = part.tangent(x)
     np.testing.assert_allclose(K @ d.ravel(), df, atol=rtol * np.abs(df).max())
     assert abs(K - K.T).max() <= 1e-9 * abs(K).max()
+
+
+def tiny_trajectory(laterality: str = "R", **metadata) -> Trajectory:
+    """Two tetrahedra sharing a face: a fat one of volume 1/6 and a muscle one of 1/3 mm^3."""
+    points = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [0, 0, -2]], float)
+    cells = np.array([[0, 1, 2, 3], [0, 2, 1, 4]])
+    unloaded = np.stack([points + np.array([0, -0.5 * s, 0]) for s in (1, 2)])  # (2, 5, 3)
+    rest = unloaded[-1]
+    compressed = np.stack([rest * [1, 1, 1 - 0.1 * s] for s in (1, 2, 3)])  # (3, 5, 3)
+    # Plates: lower at z = -2, upper from z = 1 (first contact) down by 0.3 / 0.6 / 0.9.
+    upper = 1.0 - 0.3 * np.arange(1, 4)
+    plates = np.zeros((3, 2, 2))
+    plates[:, :, 0] = -1.0
+    plates[:, 0, 1], plates[:, 1, 1] = -2.0, upper
+    return Trajectory(
+        points=points,
+        cells=cells,
+        tissue=np.array([1, 3], np.uint8),  # fat, muscle
+        node_tissue_code=np.array([3, 3, 3, 2, 1], np.uint8),
+        node_flags=np.array([1, 0, 0, 1 | 4, 0], np.uint8),  # node 3: skin, upper contact
+        skin=np.array([[0, 1, 3]]),
+        unloaded=unloaded,
+        compressed=compressed,
+        plates=plates,
+        compression_ratio=1 - (upper + 2.0) / 3.0,
+        metadata={"laterality": laterality, **metadata},
+    )

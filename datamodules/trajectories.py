@@ -1,0 +1,215 @@
+"""A LightningDataModule over a folder of simulated trajectories (the FE cohort's output).
+
+    dm = TrajectoryDataModule("data/cohort/full/trajectories", step="compression")
+
+`prepare_data` turns every ``P0007_L.npz`` into a per-breast feature cache
+(``<cache_dir>/<step>/P0007_L.features.npy`` (N, T, F) float32, ``.targets.npy`` (N, T, 3)
+float32 and ``.json`` with the normalisation), written atomically and skipped when present.
+Every dataset then reads the caches memory-mapped, so the cohort is never held in RAM twice:
+the sequence model gets one node's step sequence per item, ``(T, F) -> (T, 3)``, and the tree
+models get flat ``(node, step)`` rows (`TrajectoryDataModule.rows`) from the same split.
+Splits are by patient (`datamodules.splits`): the paper's one-fold split or k-fold.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import lightning as L
+import numpy as np
+import torch
+from numpy.typing import NDArray
+from torch.utils.data import DataLoader, Dataset
+
+from datamodules.features import (
+    COMPRESSION_FEATURES,
+    UNLOADED_FEATURES,
+    Normalization,
+    compression_features,
+    unloaded_features,
+)
+from datamodules.splits import k_folds, one_fold_split
+from fem.atomic import atomic_path
+from fem.trajectory import Trajectory
+
+STEPS = {"unloaded": unloaded_features, "compression": compression_features}
+FEATURES = {"unloaded": UNLOADED_FEATURES, "compression": COMPRESSION_FEATURES}
+
+
+@dataclass(frozen=True)
+class Breast:
+    """One cached breast: its name, patient, site and cache file stem."""
+
+    name: str
+    patient: int
+    site: str
+    stem: Path
+
+    def features(self) -> NDArray[np.float32]:
+        """(N, T, F), memory-mapped."""
+        return np.load(self.stem.with_suffix(".features.npy"), mmap_mode="r")
+
+    def targets(self) -> NDArray[np.float32]:
+        """(N, T, 3) normalised coordinates, memory-mapped."""
+        return np.load(self.stem.with_suffix(".targets.npy"), mmap_mode="r")
+
+    def normalization(self) -> Normalization:
+        meta = json.loads(self.stem.with_suffix(".json").read_text())
+        return Normalization(np.asarray(meta["mean"]), float(meta["scale"]))
+
+
+def cache_breast(source: Path, stem: Path, step: str) -> None:
+    """Write the feature cache of one simulated breast (atomically; targets last)."""
+    traj = Trajectory.load(source)
+    traj.metadata.setdefault("source", str(source))
+    features, targets, norm = STEPS[step](traj)
+    meta = {
+        "mean": norm.mean.tolist(),
+        "scale": norm.scale,
+        "patient": int(traj.metadata.get("patient", -1)),
+        "site": str(traj.metadata.get("site", "")),
+        "n_nodes": traj.n_nodes,
+        "n_steps": len(targets),
+    }
+    with atomic_path(stem.with_suffix(".features.npy")) as tmp:
+        np.save(tmp, np.ascontiguousarray(features.transpose(1, 0, 2)))
+    with atomic_path(stem.with_suffix(".json")) as tmp:
+        tmp.write_text(json.dumps(meta))
+    with atomic_path(stem.with_suffix(".targets.npy")) as tmp:
+        np.save(tmp, np.ascontiguousarray(targets.transpose(1, 0, 2)))
+
+
+class NodeSequences(Dataset):
+    """One item per (breast, node): ``(features (T, F), targets (T, 3))`` float32 tensors."""
+
+    def __init__(self, breasts: list[Breast]) -> None:
+        self.breasts = breasts
+        counts = [json.loads(b.stem.with_suffix(".json").read_text())["n_nodes"] for b in breasts]
+        self.offsets = np.concatenate([[0], np.cumsum(counts)])
+        self._open: dict[int, tuple[NDArray, NDArray]] = {}
+
+    def __len__(self) -> int:
+        return int(self.offsets[-1])
+
+    def locate(self, index: int) -> tuple[int, int]:
+        """(breast index, node index) of a dataset index."""
+        b = int(np.searchsorted(self.offsets, index, side="right") - 1)
+        return b, index - int(self.offsets[b])
+
+    def __getitem__(self, index: int) -> tuple[torch.Tensor, torch.Tensor]:
+        b, node = self.locate(index)
+        if b not in self._open:  # memory maps, opened lazily per worker
+            self._open[b] = (self.breasts[b].features(), self.breasts[b].targets())
+        features, targets = self._open[b]
+        return torch.from_numpy(np.array(features[node])), torch.from_numpy(np.array(targets[node]))
+
+
+class TrajectoryDataModule(L.LightningDataModule):
+    """Per-node step sequences and flat rows of one simulation step, split by patient.
+
+    Parameters
+    ----------
+    data_dir : str
+        Folder of simulated ``P*_[LR].npz`` trajectories.
+    step : {"unloaded", "compression"}
+        Which simulation step the models learn.
+    split : {"one_fold", "k_fold"}
+        The paper's 90/10 split with a site-balanced validation set, or k-fold
+        cross-validation (``fold`` is the validation fold).
+    fold, n_folds, val_fraction, seed
+        Split parameters (`datamodules.splits`).
+    batch_size, num_workers
+        Of the sequence loaders.
+    cache_dir : str, optional
+        Feature caches; default ``<data_dir>/cache``.
+    """
+
+    def __init__(
+        self,
+        data_dir: str,
+        step: str = "compression",
+        split: str = "one_fold",
+        fold: int = 0,
+        n_folds: int = 10,
+        val_fraction: float = 0.1,
+        seed: int = 0,
+        batch_size: int = 256,
+        num_workers: int = 0,
+        cache_dir: str | None = None,
+    ) -> None:
+        super().__init__()
+        if step not in STEPS:
+            raise ValueError(f"step must be one of {sorted(STEPS)}, got {step!r}")
+        if split not in ("one_fold", "k_fold"):
+            raise ValueError(f"split must be 'one_fold' or 'k_fold', got {split!r}")
+        self.save_hyperparameters()
+        self.data_dir = Path(data_dir)
+        self.cache = Path(cache_dir) if cache_dir else self.data_dir / "cache"
+        self.feature_names = FEATURES[step]
+        self.train: list[Breast] = []
+        self.val: list[Breast] = []
+
+    def sources(self) -> list[Path]:
+        files = sorted(self.data_dir.glob("P*_[LR].npz"))
+        if not files:
+            raise FileNotFoundError(f"{self.data_dir}: no simulated trajectories (P*_[LR].npz)")
+        return files
+
+    def prepare_data(self) -> None:
+        out = self.cache / self.hparams.step
+        out.mkdir(parents=True, exist_ok=True)
+        for source in self.sources():
+            stem = out / source.stem
+            if not stem.with_suffix(".targets.npy").exists():  # written last: marks it done
+                cache_breast(source, stem, self.hparams.step)
+
+    def breasts(self) -> list[Breast]:
+        out = self.cache / self.hparams.step
+        result = []
+        for source in self.sources():
+            meta = json.loads((out / source.stem).with_suffix(".json").read_text())
+            result.append(Breast(source.stem, meta["patient"], meta["site"], out / source.stem))
+        return result
+
+    def setup(self, stage: str | None = None) -> None:
+        breasts = self.breasts()
+        site = {b.patient: b.site for b in breasts}
+        patients = np.array(sorted(site))
+        sites = [site[p] for p in patients]
+        hp = self.hparams
+        if hp.split == "one_fold":
+            _, val = one_fold_split(patients, sites, hp.val_fraction, hp.seed)
+        else:
+            fold = k_folds(patients, sites, hp.n_folds, hp.seed)
+            val = patients[fold == hp.fold]
+        self.val = [b for b in breasts if b.patient in set(val.tolist())]
+        self.train = [b for b in breasts if b.patient not in set(val.tolist())]
+
+    def train_dataloader(self) -> DataLoader:
+        return DataLoader(
+            NodeSequences(self.train),
+            batch_size=self.hparams.batch_size,
+            shuffle=True,
+            num_workers=self.hparams.num_workers,
+        )
+
+    def val_dataloader(self) -> DataLoader:
+        return DataLoader(
+            NodeSequences(self.val),
+            batch_size=self.hparams.batch_size,
+            num_workers=self.hparams.num_workers,
+        )
+
+    def test_dataloader(self) -> DataLoader:
+        return self.val_dataloader()
+
+    @staticmethod
+    def rows(breasts: list[Breast]) -> Iterator[tuple[NDArray, NDArray]]:
+        """Flat ``(node, step)`` rows per breast for the tree models: ``(N * T, F)`` features
+        and ``(N * T, 3)`` targets, one breast at a time (read from the memory maps)."""
+        for b in breasts:
+            f, t = b.features(), b.targets()
+            yield np.asarray(f).reshape(-1, f.shape[-1]), np.asarray(t).reshape(-1, 3)
