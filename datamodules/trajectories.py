@@ -83,12 +83,15 @@ def cache_breast(source: Path, stem: Path, step: str) -> None:
 
 
 class NodeSequences(Dataset):
-    """One item per (breast, node): ``(features (T, F), targets (T, 3))`` float32 tensors."""
+    """One item per (breast, node): features (T, F) and targets (T, 3) float32, the breast's
+    index in ``breasts`` and its normalisation scale (mm per normalised unit, for errors in mm).
+    """
 
     def __init__(self, breasts: list[Breast]) -> None:
         self.breasts = breasts
-        counts = [json.loads(b.stem.with_suffix(".json").read_text())["n_nodes"] for b in breasts]
-        self.offsets = np.concatenate([[0], np.cumsum(counts)])
+        metas = [json.loads(b.stem.with_suffix(".json").read_text()) for b in breasts]
+        self.offsets = np.concatenate([[0], np.cumsum([m["n_nodes"] for m in metas])])
+        self.scales = np.array([m["scale"] for m in metas], np.float32)
         self._open: dict[int, tuple[NDArray, NDArray]] = {}
 
     def __len__(self) -> int:
@@ -99,12 +102,13 @@ class NodeSequences(Dataset):
         b = int(np.searchsorted(self.offsets, index, side="right") - 1)
         return b, index - int(self.offsets[b])
 
-    def __getitem__(self, index: int) -> tuple[torch.Tensor, torch.Tensor]:
+    def __getitem__(self, index: int) -> tuple[torch.Tensor, torch.Tensor, int, float]:
         b, node = self.locate(index)
         if b not in self._open:  # memory maps, opened lazily per worker
             self._open[b] = (self.breasts[b].features(), self.breasts[b].targets())
         features, targets = self._open[b]
-        return torch.from_numpy(np.array(features[node])), torch.from_numpy(np.array(targets[node]))
+        x = torch.from_numpy(np.array(features[node]))
+        return x, torch.from_numpy(np.array(targets[node])), b, float(self.scales[b])
 
 
 class TrajectoryDataModule(L.LightningDataModule):

@@ -1,0 +1,179 @@
+"""The tree baselines of the reference paper: extremely randomized trees and XGBoost.
+
+Pure functions fit a model on flat ``(node, step)`` rows and predict coordinates; the models
+are saved without pickle: XGBoost as its own JSON, the extra trees as arrays in an ``.npz``
+(`save_forest`/`load_forest`, a `Forest` predicts exactly as scikit-learn does). The thin
+Lightning callbacks in `mammo_net.callbacks` fit them on the DataModule's training split and
+log their errors under the network's metric names.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import xgboost as xgb
+from numpy.typing import NDArray
+from sklearn.ensemble import ExtraTreesRegressor
+
+from fem.atomic import atomic_path
+
+#: The paper's tuned XGBoost (section 3): unloaded state and compression.
+PAPER_XGBOOST = {
+    "unloaded": {"n_estimators": 55, "learning_rate": 0.2, "min_child_weight": 50, "max_depth": 6},
+    "compression": {
+        "n_estimators": 80,
+        "learning_rate": 0.08,
+        "min_child_weight": 6,
+        "max_depth": 7,
+    },
+}
+
+
+def stack_rows(rows: Iterable[tuple[NDArray, NDArray]]) -> tuple[NDArray, NDArray]:
+    """One (rows, F) feature matrix and (rows, 3) target matrix from per-breast row blocks,
+    filled into preallocated arrays (the blocks are read once; no second full copy)."""
+    blocks = list(rows)
+    n = sum(len(f) for f, _ in blocks)
+    X = np.empty((n, blocks[0][0].shape[1]), np.float32)
+    Y = np.empty((n, 3), np.float32)
+    i = 0
+    for f, t in blocks:
+        X[i : i + len(f)], Y[i : i + len(f)] = f, t
+        i += len(f)
+    return X, Y
+
+
+def fit_xgboost(
+    X: NDArray,
+    Y: NDArray,
+    n_estimators: int = 80,
+    learning_rate: float = 0.08,
+    min_child_weight: float = 6,
+    max_depth: int = 7,
+    n_jobs: int = 0,
+    seed: int = 0,
+) -> xgb.Booster:
+    """Gradient-boosted trees (squared error, one multi-output model) on rows ``X`` -> ``Y``."""
+    data = xgb.QuantileDMatrix(X, Y)
+    params = {
+        "objective": "reg:squarederror",
+        "learning_rate": learning_rate,
+        "min_child_weight": min_child_weight,
+        "max_depth": max_depth,
+        "tree_method": "hist",
+        "multi_strategy": "one_output_per_tree",
+        "nthread": n_jobs,
+        "seed": seed,
+    }
+    return xgb.train(params, data, num_boost_round=n_estimators)
+
+
+def predict_xgboost(model: xgb.Booster, X: NDArray) -> NDArray[np.float32]:
+    """(rows, 3) predictions."""
+    return model.inplace_predict(X).reshape(len(X), 3).astype(np.float32)
+
+
+@dataclass
+class Forest:
+    """An extremely randomized forest as plain arrays (all trees concatenated).
+
+    ``left``, ``right``, ``feature`` (int), ``threshold`` (float) per node, ``value`` (nodes, 3)
+    the leaf means, ``roots`` the first node of each tree; leaves have ``left == -1``.
+    """
+
+    left: NDArray
+    right: NDArray
+    feature: NDArray
+    threshold: NDArray
+    value: NDArray
+    roots: NDArray
+
+    def predict(self, X: NDArray) -> NDArray[np.float32]:
+        """(rows, 3): the mean of the trees' leaf values, as scikit-learn computes it."""
+        X = np.asarray(X, np.float32)
+        total = np.zeros((len(X), 3))
+        rows = np.arange(len(X))
+        for root in self.roots:
+            node = np.full(len(X), root)
+            inner = self.left[node] >= 0
+            while inner.any():
+                n = node[inner]
+                go_left = X[rows[inner], self.feature[n]] <= self.threshold[n]
+                node[inner] = np.where(go_left, self.left[n], self.right[n])
+                inner = self.left[node] >= 0
+            total += self.value[node]
+        return (total / len(self.roots)).astype(np.float32)
+
+
+def fit_ert(
+    X: NDArray,
+    Y: NDArray,
+    n_estimators: int = 100,
+    min_samples_leaf: int = 1,
+    max_depth: int | None = None,
+    n_jobs: int = -1,
+    seed: int = 0,
+) -> Forest:
+    """Extremely randomized trees (scikit-learn) on rows ``X`` -> ``Y``, as a `Forest`."""
+    model = ExtraTreesRegressor(
+        n_estimators=n_estimators,
+        min_samples_leaf=min_samples_leaf,
+        max_depth=max_depth,
+        n_jobs=n_jobs,
+        random_state=seed,
+    ).fit(X, Y)
+    return forest_arrays(model)
+
+
+def forest_arrays(model: ExtraTreesRegressor) -> Forest:
+    """The fitted scikit-learn forest's trees as concatenated arrays."""
+    parts, offset, roots = [], 0, []
+    for est in model.estimators_:
+        t = est.tree_
+        shift = np.where(t.children_left >= 0, offset, 0)
+        parts.append(
+            (
+                t.children_left + shift,
+                t.children_right + shift,
+                t.feature,
+                t.threshold,
+                t.value[:, :, 0],
+            )
+        )
+        roots.append(offset)
+        offset += t.node_count
+    left, right, feature, threshold, value = (np.concatenate(a) for a in zip(*parts, strict=True))
+    return Forest(left, right, feature, threshold, value, np.array(roots))
+
+
+def save_forest(forest: Forest, path: str | Path) -> Path:
+    """Write a `Forest` as a plain ``.npz`` (no pickle), atomically."""
+    path = Path(path)
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        np.savez_compressed(fh, **vars(forest))
+    return path
+
+
+def load_forest(path: str | Path) -> Forest:
+    """Read a `Forest` written by `save_forest` (never unpickles)."""
+    with np.load(path, allow_pickle=False) as z:
+        return Forest(
+            **{k: z[k] for k in ("left", "right", "feature", "threshold", "value", "roots")}
+        )
+
+
+def save_xgboost(model: xgb.Booster, path: str | Path) -> Path:
+    """XGBoost's own JSON format, atomically."""
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        model.save_model(str(tmp))  # the format follows the suffix: .json or .ubj
+    return path
+
+
+def load_xgboost(path: str | Path) -> xgb.Booster:
+    model = xgb.Booster()
+    model.load_model(str(path))
+    return model

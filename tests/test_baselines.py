@@ -1,0 +1,53 @@
+"""Tree baselines: the array forest predicts exactly as scikit-learn; both models reload from
+their non-pickle files and predict identical values."""
+
+import numpy as np
+from sklearn.ensemble import ExtraTreesRegressor
+
+from mammo_net.baselines import (
+    fit_ert,
+    fit_xgboost,
+    forest_arrays,
+    load_forest,
+    load_xgboost,
+    predict_xgboost,
+    save_forest,
+    save_xgboost,
+    stack_rows,
+)
+
+
+def data(n=400, seed=0):
+    rng = np.random.default_rng(seed)
+    X = rng.normal(size=(n, 5)).astype(np.float32)
+    Y = np.stack([X[:, 0] * 2, np.sin(X[:, 1]), X[:, 2] * X[:, 3]], 1).astype(np.float32)
+    return X, Y
+
+
+def test_forest_arrays_predict_like_scikit_learn():
+    X, Y = data()
+    model = ExtraTreesRegressor(n_estimators=7, random_state=0).fit(X, Y)
+    forest = forest_arrays(model)
+    Xt, _ = data(100, seed=1)
+    np.testing.assert_allclose(forest.predict(Xt), model.predict(Xt), rtol=1e-6, atol=1e-6)
+
+
+def test_baselines_reload_identically(tmp_path):
+    X, Y = data()
+    forest = fit_ert(X, Y, n_estimators=5, n_jobs=1)
+    again = load_forest(save_forest(forest, tmp_path / "ert.npz"))
+    np.testing.assert_array_equal(again.predict(X), forest.predict(X))
+    booster = fit_xgboost(X, Y, n_estimators=10, max_depth=3, n_jobs=1)
+    loaded = load_xgboost(save_xgboost(booster, tmp_path / "xgb.json"))
+    np.testing.assert_array_equal(predict_xgboost(loaded, X), predict_xgboost(booster, X))
+    assert (tmp_path / "xgb.json").read_text().startswith("{")  # JSON, not a pickle
+    fit = np.sqrt(((predict_xgboost(booster, X) - Y) ** 2).mean())
+    assert fit < 0.6 * np.sqrt(((Y - Y.mean(0)) ** 2).mean())  # it learned something
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ert.npz", "xgb.json"]
+
+
+def test_stack_rows():
+    blocks = [(np.ones((4, 2)), np.zeros((4, 3))), (2 * np.ones((3, 2)), np.ones((3, 3)))]
+    X, Y = stack_rows(iter(blocks))
+    assert X.shape == (7, 2) and Y.shape == (7, 3) and X.dtype == np.float32
+    np.testing.assert_array_equal(X[4:], 2)
