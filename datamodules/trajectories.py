@@ -210,6 +210,16 @@ class TrajectoryDataModule(L.LightningDataModule):
     def test_dataloader(self) -> DataLoader:
         return self.val_dataloader()
 
+    def feature_statistics(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Mean and standard deviation (F,) of each feature over the training rows, streamed
+        breast by breast (for the sequence model's standardisation)."""
+        n, total, squares = 0, 0.0, 0.0
+        for features, _ in self.rows(self.train):
+            f = features.astype(np.float64)
+            n, total, squares = n + len(f), total + f.sum(0), squares + (f**2).sum(0)
+        mean = total / n
+        return mean, np.sqrt(np.maximum(squares / n - mean**2, 0.0))
+
     @staticmethod
     def rows(breasts: list[Breast]) -> Iterator[tuple[NDArray, NDArray]]:
         """Flat ``(node, step)`` rows per breast for the tree models: ``(N * T, F)`` features

@@ -5,9 +5,6 @@ Zhou et al. (2016) with two cascaded activation stages: ``M = act1(H)``,
 ``alpha = softmax(w^T M)`` over the steps, ``h* = act2(H^T alpha)``. Decoder: an LSTM started
 from ``h*`` that reads the encoder outputs step by step, with Luong et al. (2015) global
 attention over them ("general" score), and a linear head to the node's x, y, z per step.
-With ``residual=True`` the head predicts the displacement from the node's input coordinates
-(features 1-3) instead of the coordinates themselves (our addition; the paper's model is
-``residual=False``).
 """
 
 from __future__ import annotations
@@ -50,8 +47,6 @@ class AttBLSTM(nn.Module):
         sigmoid, sigmoid for compression).
     dropout : float
         Between stacked encoder layers and before the head.
-    residual : bool
-        Predict displacements from features 1-3 (the node's input coordinates).
     """
 
     def __init__(
@@ -61,10 +56,8 @@ class AttBLSTM(nn.Module):
         layers: int = 2,
         activations: tuple[str, str] = ("tanh", "relu"),
         dropout: float = 0.0,
-        residual: bool = True,
     ) -> None:
         super().__init__()
-        self.residual = residual
         self.encoder = nn.LSTM(
             n_features,
             hidden,
@@ -87,5 +80,4 @@ class AttBLSTM(nn.Module):
         dec, _ = self.decoder(H, state)  # (B, T, 2h)
         weights = torch.softmax(dec @ self.score(H).transpose(1, 2), dim=-1)  # (B, T, T)
         context = weights @ H  # (B, T, 2h)
-        out = self.head(torch.tanh(self.combine(torch.cat([context, dec], dim=-1))))  # (B, T, 3)
-        return out + x[..., :3] if self.residual else out
+        return self.head(torch.tanh(self.combine(torch.cat([context, dec], dim=-1))))  # (B, T, 3)

@@ -82,3 +82,13 @@ def tiny_trajectory(laterality: str = "R", **metadata) -> Trajectory:
         compression_ratio=1 - (upper + 2.0) / 3.0,
         metadata={"laterality": laterality, **metadata},
     )
+
+
+@pytest.fixture
+def trajectory_folder(tmp_path):
+    """12 patients (3 of site A), both breasts each: tiny simulated trajectories."""
+    for p in range(12):
+        for lat in "LR":
+            site = "A" if p % 4 == 0 else "B"
+            tiny_trajectory(lat, patient=p, site=site).save(tmp_path / f"P{p:04d}_{lat}.npz")
+    return tmp_path

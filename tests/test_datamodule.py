@@ -7,19 +7,9 @@ from conftest import tiny_trajectory
 from datamodules.trajectories import TrajectoryDataModule
 
 
-@pytest.fixture
-def folder(tmp_path):
-    """12 patients (3 of site A), both breasts each: tiny simulated trajectories."""
-    for p in range(12):
-        for lat in "LR":
-            site = "A" if p % 4 == 0 else "B"
-            tiny_trajectory(lat, patient=p, site=site).save(tmp_path / f"P{p:04d}_{lat}.npz")
-    return tmp_path
-
-
 @pytest.mark.parametrize("step, n_features, n_steps", [("unloaded", 11, 2), ("compression", 22, 3)])
-def test_sequences_and_rows(folder, step, n_features, n_steps):
-    dm = TrajectoryDataModule(str(folder), step=step, val_fraction=0.25, batch_size=7)
+def test_sequences_and_rows(trajectory_folder, step, n_features, n_steps):
+    dm = TrajectoryDataModule(str(trajectory_folder), step=step, val_fraction=0.25, batch_size=7)
     dm.prepare_data()
     dm.setup()
     train = {b.patient for b in dm.train}
@@ -39,17 +29,21 @@ def test_sequences_and_rows(folder, step, n_features, n_steps):
     np.testing.assert_allclose(mm, positions.transpose(1, 0, 2), atol=1e-5)
 
 
-def test_k_fold_and_cache_reuse(folder):
+def test_k_fold_and_cache_reuse(trajectory_folder):
     folds = []
     for k in range(4):
-        dm = TrajectoryDataModule(str(folder), split="k_fold", n_folds=4, fold=k)
+        dm = TrajectoryDataModule(str(trajectory_folder), split="k_fold", n_folds=4, fold=k)
         dm.prepare_data()
         dm.setup()
         folds.append({b.patient for b in dm.val})
     assert set().union(*folds) == set(range(12)) and sum(map(len, folds)) == 12
-    stamp = (folder / "cache" / "compression" / "P0000_L.features.npy").stat().st_mtime_ns
+    stamp = (
+        (trajectory_folder / "cache" / "compression" / "P0000_L.features.npy").stat().st_mtime_ns
+    )
     dm.prepare_data()  # cached breasts are not redone
-    assert (folder / "cache" / "compression" / "P0000_L.features.npy").stat().st_mtime_ns == stamp
+    assert (
+        trajectory_folder / "cache" / "compression" / "P0000_L.features.npy"
+    ).stat().st_mtime_ns == stamp
 
 
 def test_errors(tmp_path):

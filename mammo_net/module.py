@@ -1,0 +1,94 @@
+"""The LightningModule of the sequence surrogate: one shared step, errors in millimetres."""
+
+from __future__ import annotations
+
+import lightning as L
+import torch
+from numpy.typing import NDArray
+from torch.nn import functional as F
+
+from mammo_net.metrics import BreastErrors
+from mammo_net.models import AttBLSTM
+
+STAGES = ("train", "val", "test")
+
+
+class SurrogateModule(L.LightningModule):
+    """Att-BLSTM on per-node step sequences, (B, T, F) -> (B, T, 3), RMSE loss.
+
+    The checkpoint holds everything to rebuild it: the hyperparameters and the feature
+    standardisation (buffers ``feature_mean``/``feature_std``, set from the training split
+    with `set_feature_normalization` before fitting).
+
+    Parameters
+    ----------
+    n_features : int
+        11 (unloaded state) or 22 (compression).
+    hidden, layers, activations, dropout
+        Of `mammo_net.models.AttBLSTM`.
+    residual : bool
+        Predict the displacement from the node's input coordinates (features 1-3) instead of
+        the coordinates (our addition; the paper's model: ``False``).
+    lr : float
+        Adam learning rate (the paper: 0.03).
+    """
+
+    def __init__(
+        self,
+        n_features: int,
+        hidden: int = 64,
+        layers: int = 2,
+        activations: tuple[str, str] = ("tanh", "relu"),
+        dropout: float = 0.0,
+        residual: bool = True,
+        lr: float = 0.03,
+    ) -> None:
+        super().__init__()
+        self.save_hyperparameters()
+        self.net = AttBLSTM(n_features, hidden, layers, tuple(activations), dropout)
+        self.register_buffer("feature_mean", torch.zeros(n_features))
+        self.register_buffer("feature_std", torch.ones(n_features))
+        self.errors = {stage: BreastErrors() for stage in STAGES}
+
+    def set_feature_normalization(self, mean: NDArray, std: NDArray) -> None:
+        """Standardise the features with the training split's statistics, (F,) each."""
+        self.feature_mean.copy_(torch.as_tensor(mean, dtype=torch.float32))
+        self.feature_std.copy_(torch.as_tensor(std, dtype=torch.float32).clamp_min(1e-6))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        out = self.net((x - self.feature_mean) / self.feature_std)  # (B, T, 3)
+        return out + x[..., :3] if self.hparams.residual else out
+
+    def shared_step(self, batch: tuple, stage: str) -> torch.Tensor:
+        x, y, breast, scale = batch
+        prediction = self(x)
+        loss = torch.sqrt(F.mse_loss(prediction, y))
+        self.log(f"{stage}/loss", loss, on_step=stage == "train", on_epoch=True, batch_size=len(x))
+        self.errors[stage].update(prediction, y, breast, scale)
+        return loss
+
+    def training_step(self, batch: tuple, batch_idx: int) -> torch.Tensor:
+        return self.shared_step(batch, "train")
+
+    def validation_step(self, batch: tuple, batch_idx: int) -> torch.Tensor:
+        return self.shared_step(batch, "val")
+
+    def test_step(self, batch: tuple, batch_idx: int) -> torch.Tensor:
+        return self.shared_step(batch, "test")
+
+    def _log_errors(self, stage: str) -> None:
+        for name, value in self.errors[stage].compute().items():
+            self.log(f"{stage}/rmse_{name}_mm", value)
+        self.errors[stage].reset()
+
+    def on_train_epoch_end(self) -> None:
+        self._log_errors("train")
+
+    def on_validation_epoch_end(self) -> None:
+        self._log_errors("val")
+
+    def on_test_epoch_end(self) -> None:
+        self._log_errors("test")
+
+    def configure_optimizers(self) -> torch.optim.Optimizer:
+        return torch.optim.Adam(self.parameters(), lr=self.hparams.lr)

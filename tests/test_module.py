@@ -1,0 +1,54 @@
+"""The sequence surrogate: shapes, training lowers the loss, the checkpoint rebuilds it."""
+
+import lightning as L
+import numpy as np
+import pytest
+import torch
+
+from datamodules.trajectories import TrajectoryDataModule
+from mammo_net.models import AttBLSTM
+from mammo_net.module import SurrogateModule
+
+
+@pytest.mark.parametrize("activations", [("tanh", "relu"), ("sigmoid", "sigmoid")])
+def test_att_blstm_shapes(activations):
+    net = AttBLSTM(22, hidden=8, layers=2, activations=activations)
+    assert net(torch.zeros(5, 70, 22)).shape == (5, 70, 3)  # (B, T, F) -> (B, T, 3)
+    with pytest.raises(ValueError, match="activation must be one of"):
+        AttBLSTM(11, activations=("tanh", "gelu"))
+
+
+def test_fit_log_and_reload(trajectory_folder, tmp_path):
+    torch.manual_seed(0)
+    dm = TrajectoryDataModule(
+        str(trajectory_folder), step="compression", val_fraction=0.25, batch_size=16
+    )
+    dm.prepare_data()
+    dm.setup()
+    model = SurrogateModule(22, hidden=8, layers=1, lr=0.01)
+    mean, std = dm.feature_statistics()
+    model.set_feature_normalization(mean, std)
+    trainer = L.Trainer(
+        max_epochs=3,
+        accelerator="cpu",
+        logger=False,
+        enable_progress_bar=False,
+        default_root_dir=tmp_path,
+    )
+    trainer.fit(model, dm)
+    metrics = trainer.callback_metrics
+    for name in (
+        "train/loss",
+        "val/loss",
+        "val/rmse_all_steps_mean_mm",
+        "val/rmse_last_step_median_mm",
+    ):
+        assert name in metrics and torch.isfinite(metrics[name])
+    ckpt = tmp_path / "model.ckpt"
+    trainer.save_checkpoint(ckpt)
+    again = SurrogateModule.load_from_checkpoint(ckpt, weights_only=True)
+    np.testing.assert_array_equal(again.feature_mean.numpy(), mean.astype(np.float32))
+    x = next(iter(dm.val_dataloader()))[0]
+    model.eval(), again.eval()
+    with torch.no_grad():
+        torch.testing.assert_close(again(x), model(x), rtol=0, atol=0)
