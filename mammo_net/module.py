@@ -44,8 +44,9 @@ class SurrogateModule(L.LightningModule):
         lr: float = 0.03,
     ) -> None:
         super().__init__()
+        activations = tuple(str(a) for a in activations)  # plain types: weights-only checkpoints
         self.save_hyperparameters()
-        self.net = AttBLSTM(n_features, hidden, layers, tuple(activations), dropout)
+        self.net = AttBLSTM(n_features, hidden, layers, activations, dropout)
         self.register_buffer("feature_mean", torch.zeros(n_features))
         self.register_buffer("feature_std", torch.ones(n_features))
         self.errors = {stage: BreastErrors() for stage in STAGES}

@@ -1,0 +1,111 @@
+"""Lightning callbacks that fit the tree baselines beside the network, in the same run.
+
+At the start of fitting a callback fits its model on the DataModule's training rows; at the
+end of fitting (and of testing) it predicts the validation breasts with the same metric code
+as the network and logs ``val/rmse_<name>_mm/<model>`` next to the network's
+``val/rmse_<name>_mm``. The fitted model is saved in a non-pickle
+format (XGBoost JSON, the forest as arrays), in ``<trainer.default_root_dir>/baselines/``.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import lightning as L
+import numpy as np
+from lightning.pytorch.callbacks import Callback
+
+from datamodules.trajectories import Breast
+from mammo_net import baselines
+from mammo_net.metrics import breast_rmse, summarize
+
+
+class TreeBaseline(Callback):
+    """Common part: fit on the training rows, evaluate per breast, log, save."""
+
+    name = "tree"
+    suffix = ".npz"
+
+    def __init__(self, **params: float | int | None) -> None:
+        self.params = params
+        self.model = None
+        self.results: dict[str, float] = {}
+
+    def fit(self, X: np.ndarray, Y: np.ndarray):
+        raise NotImplementedError
+
+    def predict(self, X: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+    def save(self, path: Path) -> Path:
+        raise NotImplementedError
+
+    def on_fit_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        dm = trainer.datamodule
+        X, Y = baselines.stack_rows(dm.rows(dm.train))
+        t0 = time.perf_counter()
+        self.model = self.fit(X, Y)
+        self.results["fit_seconds"] = time.perf_counter() - t0
+        folder = Path(trainer.default_root_dir) / "baselines"
+        self.path = self.save(folder / f"{self.name}{self.suffix}")
+
+    def evaluate(self, breasts: list[Breast]) -> dict[str, float]:
+        """Mean / median / std over ``breasts`` of the per-breast RMSE (all steps, last), mm."""
+        per = []
+        for breast in breasts:
+            features, targets = breast.features(), breast.targets()  # (N, T, F), (N, T, 3)
+            prediction = self.predict(np.asarray(features).reshape(-1, features.shape[-1]))
+            norm = breast.normalization()
+            per.append(
+                breast_rmse(
+                    norm.invert(prediction.reshape(targets.shape)), norm.invert(np.asarray(targets))
+                )
+            )
+        out = {}
+        for key in ("all_steps", "last_step"):
+            out.update({f"{key}_{k}": v for k, v in summarize([p[key] for p in per]).items()})
+        return out
+
+    def _log(self, trainer: L.Trainer, stage: str) -> None:
+        dm = trainer.datamodule
+        metrics = {f"{stage}/rmse_{k}_mm/{self.name}": v for k, v in self.evaluate(dm.val).items()}
+        self.results.update(metrics)
+        if trainer.logger is not None:
+            trainer.logger.log_metrics(metrics, step=trainer.global_step)
+
+    def on_fit_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self._log(trainer, "val")
+
+    def on_test_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self._log(trainer, "test")
+
+
+class XGBoostBaseline(TreeBaseline):
+    """XGBoost (`mammo_net.baselines.fit_xgboost`; keyword arguments are its parameters)."""
+
+    name, suffix = "xgboost", ".json"
+
+    def fit(self, X, Y):
+        return baselines.fit_xgboost(X, Y, **self.params)
+
+    def predict(self, X):
+        return baselines.predict_xgboost(self.model, X)
+
+    def save(self, path):
+        return baselines.save_xgboost(self.model, path)
+
+
+class ERTBaseline(TreeBaseline):
+    """Extremely randomized trees (`mammo_net.baselines.fit_ert`)."""
+
+    name, suffix = "ert", ".npz"
+
+    def fit(self, X, Y):
+        return baselines.fit_ert(X, Y, **self.params)
+
+    def predict(self, X):
+        return self.model.predict(X)
+
+    def save(self, path):
+        return baselines.save_forest(self.model, path)
