@@ -24,9 +24,10 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import TypeVar
 
 import hydra
 import numpy as np
@@ -52,6 +53,7 @@ from fem.timeseries import write_time_series
 from fem.trajectory import NodeFlag, Tissue, Trajectory
 
 AP_AXIS = 1  #: anteroposterior axis (y, RAS+)
+T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -288,6 +290,18 @@ def _check_thickness(thickness: float, extent: float, source: str) -> None:
         )
 
 
+def _timed(step: str, seconds: dict[str, float], source: str, run: Callable[[], T]) -> T:
+    """Run one simulation step, record its wall time under its first word, and turn a
+    `SolverError` into `SimulationFailed` (with the times so far)."""
+    t0 = time.perf_counter()
+    try:
+        return run()
+    except SolverError as exc:
+        raise SimulationFailed(source, step, str(exc), seconds) from exc
+    finally:
+        seconds[step.split()[0]] = time.perf_counter() - t0
+
+
 class SimulationFailed(RuntimeError):
     """A breast could not be simulated; ``step`` says which step, ``seconds`` what it cost."""
 
@@ -381,25 +395,26 @@ class Simulation:
                 raise ValueError(f"{path}: cannot read fixed node indices: {exc}") from exc
             fixed = np.atleast_1d(fixed).astype(np.int64)
         seconds: dict[str, float] = {}
-        t0 = time.perf_counter()
-        try:
-            unloaded = unloaded_state(
+        unloaded = _timed(
+            "unloaded state",
+            seconds,
+            source,
+            lambda: unloaded_state(
                 traj,
                 self.materials,
                 self.unloaded_steps,
                 self.prone_gravity,
                 self.averaging,
                 fixed=fixed,
-            )
-        except SolverError as exc:
-            seconds["unloaded"] = time.perf_counter() - t0
-            raise SimulationFailed(source, "unloaded state", str(exc), seconds) from exc
-        seconds["unloaded"] = time.perf_counter() - t0
+            ),
+        )
         skin_z = unloaded[-1][traj.flagged(NodeFlag.SKIN), 2]
         thickness = (1.0 - ratio) * float(np.ptp(skin_z))
-        t1 = time.perf_counter()
-        try:
-            result = compression(
+        result = _timed(
+            "compression",
+            seconds,
+            source,
+            lambda: compression(
                 traj,
                 unloaded[-1],
                 thickness,
@@ -409,11 +424,8 @@ class Simulation:
                 self.averaging,
                 self.friction,
                 fixed=fixed,
-            )
-        except SolverError as exc:
-            seconds["compression"] = time.perf_counter() - t1
-            raise SimulationFailed(source, "compression", str(exc), seconds) from exc
-        seconds["compression"] = time.perf_counter() - t1
+            ),
+        )
         reference = signed_volume(unloaded[-1], traj.cells).sum()
         final = result.positions[-1]
         metadata = {
