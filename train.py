@@ -17,6 +17,7 @@ import lightning as L
 from hydra.utils import instantiate, to_absolute_path
 from omegaconf import DictConfig
 
+from fem.atomic import atomic_path
 from fem.cohort import run_cohort
 from mammo_net.callbacks import TreeBaseline
 
@@ -82,7 +83,8 @@ def train(cfg: DictConfig) -> float:
     }
     table = comparison(rows, stage)
     if trainer.is_global_zero:
-        (Path(cfg.run_dir) / "results.md").write_text(table)
+        with atomic_path(Path(cfg.run_dir) / "results.md") as tmp:
+            tmp.write_text(table)
         print(table)
     return score
 

@@ -35,7 +35,7 @@ from numpy.typing import NDArray
 
 from fem.assembly import Model
 from fem.quality import signed_volume
-from fem.simulate import PAPER_MATERIALS, Material, breast_model, chest_wall_free_dofs
+from fem.simulate import AP_AXIS, PAPER_MATERIALS, Material, breast_model, chest_wall_free_dofs
 from fem.solver import (
     DEFAULT_NEWTON,
     GRAVITY_FORCE_DENSITY,
@@ -45,9 +45,6 @@ from fem.solver import (
     nodal_body_force,
 )
 from fem.trajectory import Trajectory
-
-#: Anteroposterior axis (y, RAS+), the direction of prone gravity.
-AP_AXIS = 1
 
 #: Load-increment halvings allowed when continuing from a guess before the full ramp is used.
 CONTINUATION_CUTBACKS = 2

@@ -225,7 +225,7 @@ def newton(
     f_ext: NDArray,
     settings: NewtonSettings = DEFAULT_NEWTON,
     linear: ReusedFactorization | None = None,
-) -> tuple[NDArray[np.float64], int]:
+) -> tuple[NDArray[np.float64], int, NDArray[np.float64]]:
     """Equilibrium positions from the start ``x`` (N, 3); fixed DOFs keep their values.
 
     When ``body`` has bounds (`Model.bounds`: rigid plates), the free DOFs are projected onto
@@ -239,6 +239,9 @@ def newton(
     -------
     x : (N, 3) float64
     iterations : int
+    gradient : (3N,) float64
+        ``dPi/dx`` at ``x`` (internal minus external forces: the reactions on fixed and held
+        DOFs), for parts that lag contact forces.
 
     Raises
     ------
@@ -281,7 +284,7 @@ def newton(
         norm = np.linalg.norm(r)
         scale = max(np.linalg.norm(f_ext[free]), np.linalg.norm((g + f_ext)[free]), 1e-30)
         if norm <= settings.tolerance * scale:
-            return x, it
+            return x, it, g
         if norm > settings.max_contraction * previous:  # modified steps stall: refactorize
             reuse, linear.stale = False, True
         modified = reuse and linear.lu is not None and linear.lu.shape == (r.size, r.size)
@@ -333,7 +336,7 @@ def newton(
         moved = np.abs(trial - flat).max()
         x, flat, pi = trial_x, trial, pi_trial
         if step == 1.0 and moved <= settings.step_tolerance:
-            return x, it + 1
+            return x, it + 1, body.internal_force(x) - f_ext
     raise SolverError(f"Newton did not converge in {settings.max_iterations} iterations")
 
 
@@ -385,7 +388,7 @@ def load_ramp(
             if configure is not None:
                 configure(nxt)
             try:
-                x_new, iterations = newton(body, guess, free, load(nxt), settings, linear)
+                x_new, iterations, gradient = newton(body, guess, free, load(nxt), settings, linear)
             except SolverError as exc:
                 cutbacks += 1
                 increment *= 0.5
@@ -395,7 +398,7 @@ def load_ramp(
                     ) from exc
                 continue
             if hasattr(body, "accept"):
-                body.accept(x_new, body.internal_force(x_new) - load(nxt))
+                body.accept(x_new, gradient)
             velocity = (x_new - x) / (nxt - lam)
             x, lam = x_new, nxt
             if iterations <= 4:

@@ -20,17 +20,6 @@ from sklearn.ensemble import ExtraTreesRegressor
 
 from fem.atomic import atomic_path
 
-#: The paper's tuned XGBoost (section 3): unloaded state and compression.
-PAPER_XGBOOST = {
-    "unloaded": {"n_estimators": 55, "learning_rate": 0.2, "min_child_weight": 50, "max_depth": 6},
-    "compression": {
-        "n_estimators": 80,
-        "learning_rate": 0.08,
-        "min_child_weight": 6,
-        "max_depth": 7,
-    },
-}
-
 
 def stack_rows(rows: Iterable[tuple[NDArray, NDArray]]) -> tuple[NDArray, NDArray]:
     """One (rows, F) feature matrix and (rows, 3) target matrix from per-breast row blocks,
