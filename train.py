@@ -10,6 +10,8 @@ side-by-side table) into the run folder, and prints the table.
 
 from __future__ import annotations
 
+import re
+import time
 from pathlib import Path
 
 import hydra
@@ -32,8 +34,21 @@ def ensure_cohort(cfg: DictConfig) -> str:
     return str(data_dir)
 
 
-def comparison(rows: dict[str, dict[str, float]], stage: str) -> str:
+def logged(trainer: L.Trainer, baselines: list[TreeBaseline]) -> dict[str, float]:
+    """Every metric of the run so far: the network's and the baselines'."""
+    out = {k: float(v) for k, v in trainer.callback_metrics.items()}
+    for c in baselines:
+        out.update(c.results)
+    return out
+
+
+def comparison(metrics: dict[str, float], stage: str) -> str:
     """Markdown table: (mean, median) +- std of the per-breast RMSE, mm, per model."""
+    rows: dict[str, dict[str, float]] = {}
+    for key, value in metrics.items():
+        match = re.fullmatch(rf"{stage}/rmse_(\w+)_mm(?:/(\w+))?", key)
+        if match:
+            rows.setdefault(match[2] or "att_blstm", {})[match[1]] = value
     lines = [
         f"| model ({stage}) | all steps: (mean, median) +- std | last step: (mean, median) +- std |",
         "| --- | --- | --- |",
@@ -46,11 +61,14 @@ def comparison(rows: dict[str, dict[str, float]], stage: str) -> str:
             for c in COLUMNS
         ]
         lines.append(f"| {model} | {cells[0]} | {cells[1]} |")
-    return "\n".join(lines) + "\n"
+    times = [
+        f"{k.split('/')[0]} {v:.0f} s" for k, v in metrics.items() if k.endswith("/fit_seconds")
+    ]
+    return "\n".join(lines) + "\n\nfit time: " + ", ".join(times) + "\n"
 
 
 def train(cfg: DictConfig) -> float:
-    """Fit (and test) on a composed config; returns the network's validation RMSE (mm)."""
+    """Fit (and test) on a composed config; returns the validation metric ``optimized_metric``."""
     L.seed_everything(cfg.seed, workers=True)
     dm = instantiate(cfg.data, data_dir=ensure_cohort(cfg))
     dm.prepare_data()
@@ -58,30 +76,27 @@ def train(cfg: DictConfig) -> float:
     model = instantiate(cfg.model)
     model.set_feature_normalization(*dm.feature_statistics())
     callbacks = [instantiate(c) for c in cfg.callbacks.values()]
+    baselines = [c for c in callbacks if isinstance(c, TreeBaseline)]
     logger = instantiate(cfg.logger) if cfg.get("logger") else False
     trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=logger)
+    start = time.perf_counter()
     trainer.fit(model, dm)
-    score = float(trainer.callback_metrics["val/rmse_all_steps_mean_mm"])
+    network = (
+        time.perf_counter() - start - sum(c.results[f"{c.name}/fit_seconds"] for c in baselines)
+    )
+    metrics = logged(trainer, baselines)
+    if cfg.optimized_metric not in metrics:
+        raise KeyError(
+            f"optimized_metric {cfg.optimized_metric!r} was not logged: {sorted(metrics)}"
+        )
+    score = metrics[cfg.optimized_metric]
     stage = "test" if cfg.test else "val"
     if cfg.test:
         best = trainer.checkpoint_callback.best_model_path if trainer.checkpoint_callback else ""
         trainer.test(model, dm, ckpt_path=best or None, weights_only=True)
-    prefix = f"{stage}/rmse_"
-    rows = {
-        c.name: {
-            k[len(prefix) :].split("_mm/")[0]: v
-            for k, v in c.results.items()
-            if k.startswith(prefix)
-        }
-        for c in callbacks
-        if isinstance(c, TreeBaseline)
-    }
-    rows["att_blstm"] = {
-        k[len(prefix) : -3]: float(v)
-        for k, v in trainer.callback_metrics.items()
-        if k.startswith(prefix) and k.endswith("_mm")
-    }
-    table = comparison(rows, stage)
+        metrics = logged(trainer, baselines)
+    metrics[f"att_blstm ({trainer.current_epoch} epochs)/fit_seconds"] = network
+    table = comparison(metrics, stage)
     if trainer.is_global_zero:
         with atomic_path(Path(cfg.run_dir) / "results.md") as tmp:
             tmp.write_text(table)

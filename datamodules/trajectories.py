@@ -84,7 +84,8 @@ def cache_breast(source: Path, stem: Path, step: str) -> None:
 
 class NodeSequences(Dataset):
     """One item per (breast, node): features (T, F) and targets (T, 3) float32, the breast's
-    index in ``breasts`` and its normalisation scale (mm per normalised unit, for errors in mm).
+    index in ``breasts``, its normalisation scale (mm per normalised unit, for errors in mm)
+    and the item's index (so metrics can drop the repeats a distributed sampler pads with).
     """
 
     def __init__(self, breasts: list[Breast]) -> None:
@@ -102,13 +103,13 @@ class NodeSequences(Dataset):
         b = int(np.searchsorted(self.offsets, index, side="right") - 1)
         return b, index - int(self.offsets[b])
 
-    def __getitem__(self, index: int) -> tuple[torch.Tensor, torch.Tensor, int, float]:
+    def __getitem__(self, index: int) -> tuple[torch.Tensor, torch.Tensor, int, float, int]:
         b, node = self.locate(index)
         if b not in self._open:  # memory maps, opened lazily per worker
             self._open[b] = (self.breasts[b].features(), self.breasts[b].targets())
         features, targets = self._open[b]
         x = torch.from_numpy(np.array(features[node]))
-        return x, torch.from_numpy(np.array(targets[node])), b, float(self.scales[b])
+        return x, torch.from_numpy(np.array(targets[node])), b, float(self.scales[b]), index
 
 
 class TrajectoryDataModule(L.LightningDataModule):

@@ -46,7 +46,7 @@ class TreeBaseline(Callback):
         X, Y = baselines.stack_rows(dm.rows(dm.train))
         t0 = time.perf_counter()
         self.model = self.fit(X, Y)
-        self.results["fit_seconds"] = time.perf_counter() - t0
+        self.results[f"{self.name}/fit_seconds"] = time.perf_counter() - t0
         folder = Path(trainer.default_root_dir) / "baselines"
         self.path = self.save(folder / f"{self.name}{self.suffix}")
 

@@ -12,6 +12,8 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 from numpy.typing import NDArray
+from torchmetrics import Metric
+from torchmetrics.utilities import dim_zero_cat
 
 Array = NDArray | torch.Tensor
 
@@ -39,15 +41,23 @@ def summarize(per_breast: Sequence[float]) -> dict[str, float]:
     return {"mean": float(v.mean()), "median": float(np.median(v)), "std": float(v.std())}
 
 
-class BreastErrors:
-    """Accumulates node RMSEs per breast over batches of node sequences (any order).
+class BreastErrors(Metric):
+    """Per-breast mean node RMSE accumulated over batches of node sequences (any order, any
+    number of processes).
 
-    ``update`` takes predictions and targets in normalised units with each node's breast index
-    and normalisation scale (mm per unit), so the errors come out in millimetres.
+    ``update`` takes predictions and targets in normalised units with each node's breast index,
+    normalisation scale (mm per unit) and dataset index, so the errors come out in millimetres.
+    The node rows are concatenated across processes (DDP) and de-duplicated by dataset index
+    (a distributed sampler pads its shards with repeated nodes), so every process computes the
+    errors of the whole evaluated set, as one process would.
     """
 
+    full_state_update = False
+
     def __init__(self) -> None:
-        self.sums: dict[int, NDArray] = {}  # breast -> [sum all-steps RMSE, sum last-step, nodes]
+        super().__init__()
+        for name in ("node", "breast", "all_steps", "last_step"):
+            self.add_state(name, default=[], dist_reduce_fx="cat")
 
     def update(
         self,
@@ -55,23 +65,28 @@ class BreastErrors:
         target: torch.Tensor,
         breast: torch.Tensor,
         scale: torch.Tensor,
+        node: torch.Tensor,
     ) -> None:
-        """``prediction``, ``target``: (B, T, 3); ``breast``, ``scale``: (B,)."""
-        e = node_rmse(prediction.detach(), target) * scale[:, None]  # (B, T), mm
-        rows = torch.stack([e.mean(1), e[:, -1], torch.ones_like(scale)], 1).double().cpu().numpy()
-        ids = breast.cpu().numpy()
-        for b in np.unique(ids):
-            self.sums[int(b)] = self.sums.get(int(b), 0.0) + rows[ids == b].sum(0)
+        """``prediction``, ``target``: (B, T, 3); ``breast``, ``scale``, ``node``: (B,)."""
+        e = node_rmse(prediction.detach(), target).double() * scale[:, None]  # (B, T), mm
+        self.node.append(node.long())
+        self.breast.append(breast.long())
+        self.all_steps.append(e.mean(1))
+        self.last_step.append(e[:, -1])
 
     def compute(self) -> dict[str, float]:
         """``{all_steps,last_step}_{mean,median,std}`` over the breasts seen, mm."""
-        if not self.sums:
+        if isinstance(self.node, list) and not self.node:  # a tensor once synced across ranks
             return {}
-        per = np.array([s[:2] / s[2] for s in self.sums.values()])
+        node, breast, all_steps, last_step = (
+            dim_zero_cat(getattr(self, n)).cpu().numpy()
+            for n in ("node", "breast", "all_steps", "last_step")
+        )
+        _, first = np.unique(node, return_index=True)
+        ids, breast = np.unique(breast[first], return_inverse=True)
+        counts = np.bincount(breast, minlength=len(ids))
         out = {}
-        for j, name in enumerate(("all_steps", "last_step")):
-            out.update({f"{name}_{k}": v for k, v in summarize(per[:, j]).items()})
+        for name, e in (("all_steps", all_steps[first]), ("last_step", last_step[first])):
+            per = np.bincount(breast, weights=e, minlength=len(ids)) / counts
+            out.update({f"{name}_{k}": v for k, v in summarize(per).items()})
         return out
-
-    def reset(self) -> None:
-        self.sums = {}

@@ -49,7 +49,8 @@ class SurrogateModule(L.LightningModule):
         self.net = AttBLSTM(n_features, hidden, layers, activations, dropout)
         self.register_buffer("feature_mean", torch.zeros(n_features))
         self.register_buffer("feature_std", torch.ones(n_features))
-        self.errors = {stage: BreastErrors() for stage in STAGES}
+        # keys f"{stage}_rmse": a ModuleDict key may not shadow a method (train)
+        self.errors = torch.nn.ModuleDict({f"{stage}_rmse": BreastErrors() for stage in STAGES})
 
     def set_feature_normalization(self, mean: NDArray, std: NDArray) -> None:
         """Standardise the features with the training split's statistics, (F,) each."""
@@ -61,11 +62,18 @@ class SurrogateModule(L.LightningModule):
         return out + x[..., :3] if self.hparams.residual else out
 
     def shared_step(self, batch: tuple, stage: str) -> torch.Tensor:
-        x, y, breast, scale = batch
-        prediction = self(x)
+        x, y, breast, scale, node = batch  # (B, T, F), (B, T, 3), (B,), (B,), (B,)
+        prediction = self(x)  # (B, T, 3)
         loss = torch.sqrt(F.mse_loss(prediction, y))
-        self.log(f"{stage}/loss", loss, on_step=stage == "train", on_epoch=True, batch_size=len(x))
-        self.errors[stage].update(prediction, y, breast, scale)
+        self.log(
+            f"{stage}/loss",
+            loss,
+            on_step=stage == "train",
+            on_epoch=True,
+            batch_size=len(x),
+            sync_dist=True,
+        )
+        self.errors[f"{stage}_rmse"].update(prediction, y, breast, scale, node)
         return loss
 
     def training_step(self, batch: tuple, batch_idx: int) -> torch.Tensor:
@@ -78,9 +86,9 @@ class SurrogateModule(L.LightningModule):
         return self.shared_step(batch, "test")
 
     def _log_errors(self, stage: str) -> None:
-        for name, value in self.errors[stage].compute().items():
-            self.log(f"{stage}/rmse_{name}_mm", value)
-        self.errors[stage].reset()
+        for name, value in self.errors[f"{stage}_rmse"].compute().items():
+            self.log(f"{stage}/rmse_{name}_mm", value, sync_dist=True)  # equal on all ranks
+        self.errors[f"{stage}_rmse"].reset()
 
     def on_train_epoch_end(self) -> None:
         self._log_errors("train")

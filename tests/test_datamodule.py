@@ -16,9 +16,10 @@ def test_sequences_and_rows(trajectory_folder, step, n_features, n_steps):
     val = {b.patient for b in dm.val}
     assert not train & val and len(train | val) == 12 and len(val) == 3
     assert len(dm.val) == 6  # both breasts of each validation patient
-    x, y, breast, scale = next(iter(dm.train_dataloader()))
+    x, y, breast, scale, node = next(iter(dm.train_dataloader()))
     assert x.shape == (7, n_steps, n_features) and y.shape == (7, n_steps, 3)  # (B, T, F)
-    assert breast.shape == scale.shape == (7,) and bool((scale > 0).all())
+    assert breast.shape == scale.shape == node.shape == (7,) and bool((scale > 0).all())
+    assert len(set(node.tolist())) == 7  # dataset indices, for de-duplication
     features, targets = next(TrajectoryDataModule.rows(dm.val))
     assert features.shape == (5 * n_steps, n_features) and targets.shape == (5 * n_steps, 3)
     # The cached targets map back to the trajectory in millimetres.

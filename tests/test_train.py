@@ -1,14 +1,21 @@
 """train.py end to end on tiny trajectories, and every experiment config instantiated."""
 
+import subprocess
+import sys
 from pathlib import Path
 
+import lightning as L
 import pytest
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
+from omegaconf import OmegaConf
 
 import train
+from datamodules.trajectories import TrajectoryDataModule
+from mammo_net.module import SurrogateModule
 
-CONF = str(Path(__file__).resolve().parents[1] / "conf")
+ROOT = Path(__file__).resolve().parents[1]
+CONF = str(ROOT / "conf")
 
 
 def _cfg(*overrides):
@@ -54,3 +61,99 @@ def test_experiment_configs_instantiate(experiment, tmp_path):
     assert set(callbacks) == {"model_checkpoint", "xgboost", "ert"}
     assert instantiate(cfg.trainer, logger=False).max_epochs == 30
     assert cfg.cohort.n_patients == 258
+
+
+@pytest.mark.parametrize(
+    "search, metric",
+    [
+        ("att_blstm_optuna", "val/rmse_all_steps_mean_mm"),
+        ("xgboost_optuna", "val/rmse_all_steps_mean_mm/xgboost"),
+    ],
+)
+def test_hparams_search_configs_instantiate(search, metric, tmp_path):
+    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
+        cfg = compose(
+            "train",
+            overrides=[f"hparams_search={search}", f"run_dir={tmp_path}"],
+            return_hydra_config=True,
+        )
+    assert cfg.optimized_metric == metric and cfg.hydra.sweeper.direction == "minimize"
+    assert "optuna" in cfg.hydra.sweeper._target_
+    for name in cfg.hydra.sweeper.params:  # every searched key exists in the run's config
+        assert OmegaConf.select(cfg, name) is not None, name
+    instantiate(cfg.model), instantiate(cfg.data)
+    assert {k: instantiate(v) for k, v in cfg.callbacks.items()}
+
+
+TINY = (
+    "data.val_fraction=0.25",
+    "data.batch_size=4",
+    "model.hidden=4",
+    "model.layers=1",
+    "~logger",
+    "+trainer.enable_progress_bar=false",
+)
+
+
+def _run_train(tmp_path, trajectory_folder, *overrides, multirun=False):
+    """``python train.py`` in a subprocess on the tiny trajectories; returns its stdout."""
+    done = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "train.py"),
+            *(["-m"] if multirun else []),
+            f"data.data_dir={trajectory_folder}",
+            *TINY,
+            *overrides,
+        ],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    return done.stdout
+
+
+def test_xgboost_optuna_sweep_runs(trajectory_folder, tmp_path):
+    out = tmp_path / "sweep"
+    _run_train(
+        tmp_path,
+        trajectory_folder,
+        "hparams_search=xgboost_optuna",
+        "hydra.sweeper.n_trials=2",
+        "hydra.sweeper.sampler.n_startup_trials=1",
+        f"hydra.sweep.dir={out}",
+        multirun=True,
+    )
+    result = OmegaConf.load(out / "optimization_results.yaml")
+    assert result.best_value > 0
+    assert set(result.best_params) == {
+        "callbacks.xgboost.n_estimators",
+        "callbacks.xgboost.learning_rate",
+        "callbacks.xgboost.max_depth",
+        "callbacks.xgboost.min_child_weight",
+    }
+
+
+def test_two_process_cpu_ddp(trajectory_folder, tmp_path):
+    """Two CPU processes with DDP: the gathered validation errors equal one process's."""
+    run = tmp_path / "ddp"
+    _run_train(
+        tmp_path,
+        trajectory_folder,
+        "trainer=ddp_cpu",
+        "trainer.max_epochs=1",
+        "callbacks=model_checkpoint",
+        f"hydra.run.dir={run}",
+    )
+    logged = (run / "results.md").read_text()
+    model = SurrogateModule.load_from_checkpoint(
+        next((run / "checkpoints").glob("epoch*.ckpt")), weights_only=True
+    )
+    dm = TrajectoryDataModule(str(trajectory_folder), val_fraction=0.25, batch_size=5)
+    dm.setup()
+    trainer = L.Trainer(accelerator="cpu", logger=False, enable_progress_bar=False)
+    single = trainer.test(model, dm, verbose=False)[0]
+    expected = train.comparison(single, "test").splitlines()[2]
+    assert expected in logged.splitlines()
