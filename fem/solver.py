@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 from scipy import sparse
+from scipy.linalg import lu_factor, lu_solve
 from scipy.sparse.linalg import LinearOperator, cg, splu
 
 from fem.assembly import HyperelasticBody, Model
@@ -91,15 +92,23 @@ class NewtonSettings:
 
 
 class ReusedFactorization:
-    """Linear solves that reuse one sparse LU factorization across Newton iterations and steps.
+    """Linear solves with held DOFs that reuse one sparse LU factorization across Newton
+    iterations, load steps and active sets.
 
-    The stored factorization preconditions a conjugate-gradient solve of the current tangent.
-    When CG needs more than ``refactor_after`` iterations (the tangent has drifted), the next
-    solve factorizes afresh; when it does not reach ``rtol`` within ``max_iterations``, this
-    one does. SuperLU with a minimum-degree ordering on K + K^T and no pivoting (the tangents
-    are symmetric and, where Newton uses them, positive definite: 26 % less fill than partial
-    pivoting on a breast), with partial pivoting as the fallback. Over a load ramp this
-    factorizes a few times instead of once per Newton iteration.
+    ``solve(K, b, keep)`` solves ``constrained(K, keep) d = b``. The stored factorization of an
+    earlier ``constrained(K0, keep0)`` preconditions a conjugate-gradient solve. DOFs held now
+    but free in the factor (nodes that came onto a plate) are removed from it exactly by a
+    Schur complement: with ``Z = A0^-1 E`` for their unit vectors ``E`` (one back-substitution
+    per DOF, cached while the factor lives), ``z = A0^-1 r - Z (E^T Z)^-1 Z^T r`` is the
+    inverse of ``A0`` on the remaining DOFs. DOFs free now but held in the factor get the
+    factor's diagonal (`constrained` keeps it). So a growing contact area costs a few back-substitutions instead of a
+    factorization per load step. When CG needs more than ``refactor_after`` iterations (the
+    tangent has drifted), the next solve factorizes afresh; when it does not reach ``rtol``
+    within ``max_iterations``, this one does.
+
+    SuperLU with a minimum-degree ordering on K + K^T and no pivoting (the tangents are
+    symmetric and, where Newton uses them, positive definite: 26 % less fill than partial
+    pivoting on a breast), with partial pivoting as the fallback.
     """
 
     def __init__(
@@ -107,23 +116,55 @@ class ReusedFactorization:
     ) -> None:
         self.rtol, self.max_iterations, self.refactor_after = rtol, max_iterations, refactor_after
         self.lu = None
+        self.keep: NDArray[np.bool_] | None = None  # the DOFs free in the factor
+        self.columns: dict[int, NDArray] = {}  # DOF j -> A0^-1 e_j
         self.stale = False
         self.factorizations = 0
 
-    def solve(self, K: sparse.spmatrix, b: NDArray) -> NDArray[np.float64]:
-        if self.lu is not None and self.lu.shape == K.shape and not self.stale:
-            M = LinearOperator(K.shape, self.lu.solve, dtype=float)
+    def usable(self, n: int) -> bool:
+        """Whether a stored, fresh factorization of an ``n``-DOF system can be reused."""
+        return self.lu is not None and self.lu.shape == (n, n) and not self.stale
+
+    def preconditioner(self, keep: NDArray[np.bool_]) -> Callable[[NDArray], NDArray]:
+        """``r -> z``: the stored factor's inverse on the DOFs ``keep`` (zero elsewhere)."""
+        held = np.flatnonzero(self.keep & ~keep)
+        Z = S = None
+        if held.size:
+            missing = [j for j in held if j not in self.columns]
+            if missing:
+                E = np.zeros((len(keep), len(missing)))
+                E[missing, np.arange(len(missing))] = 1.0
+                self.columns.update(zip(missing, self.lu.solve(E).T, strict=True))
+            Z = np.stack([self.columns[j] for j in held], axis=1)  # (F, H)
+            S = lu_factor(Z[held])  # E^T A0^-1 E (LU: A0 may be indefinite)
+
+        def apply(r: NDArray) -> NDArray:
+            z = self.lu.solve(r)
+            if Z is not None:
+                z -= Z @ lu_solve(S, z[held])
+            return np.where(keep, z, 0.0)
+
+        return apply
+
+    def solve(
+        self, K: sparse.spmatrix, b: NDArray, keep: NDArray[np.bool_] | None = None
+    ) -> NDArray[np.float64]:
+        """Solve ``constrained(K, keep) d = b`` (``b`` is zero on the held DOFs)."""
+        keep = np.ones(K.shape[0], bool) if keep is None else keep
+        A = constrained(K, keep) if not keep.all() else K
+        if self.usable(K.shape[0]):
+            M = LinearOperator(K.shape, self.preconditioner(keep), dtype=float)
             iterations = 0
 
             def count(_: NDArray) -> None:
                 nonlocal iterations
                 iterations += 1
 
-            x, info = cg(K, b, rtol=self.rtol, maxiter=self.max_iterations, M=M, callback=count)
+            x, info = cg(A, b, rtol=self.rtol, maxiter=self.max_iterations, M=M, callback=count)
             self.stale = iterations > self.refactor_after
             if info == 0:
                 return x
-        self.lu = factorize(K)
+        self.lu, self.keep, self.columns = factorize(A), keep.copy(), {}
         self.stale = False
         self.factorizations += 1
         return self.lu.solve(b)
@@ -199,7 +240,7 @@ def newton_step(
     p = np.zeros(len(x))
     for _ in range(20):
         keep = ~fixed
-        d = linear.solve(constrained(K, keep), np.where(keep, -(gf + K @ p), 0.0))
+        d = linear.solve(K, np.where(keep, -(gf + K @ p), 0.0), keep)
         d = np.where(keep, d, p)
         if lower is None:
             break
@@ -289,7 +330,7 @@ def newton(
             reuse, linear.stale = False, True
         modified = reuse and linear.lu is not None and linear.lu.shape == (r.size, r.size)
         if modified:  # a step with an earlier tangent's factorization: no assembly
-            dx, previous = np.where(held[free], 0.0, linear.lu.solve(-r)), norm
+            dx, previous = linear.preconditioner(~held[free])(-r), norm
             slope = g[free] @ dx
             modified = slope < 0
             if lower is not None:  # ... that must not carry a DOF through a bound

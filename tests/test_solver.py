@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 import skfem
+from scipy import sparse
 
 from fem.assembly import HyperelasticBody
 from fem.material import lame_parameters, neo_hookean_pk1, uniaxial_lateral_stretch
@@ -10,7 +11,9 @@ from fem.quality import signed_volume
 from fem.solver import (
     GRAVITY_FORCE_DENSITY,
     NewtonSettings,
+    ReusedFactorization,
     SolverError,
+    constrained,
     load_ramp,
     newton,
     nodal_body_force,
@@ -80,3 +83,28 @@ def test_newton_reports_failure():
     f = nodal_body_force(body, np.array([0, 0, -1e3 * GRAVITY_FORCE_DENSITY]))
     with pytest.raises(SolverError, match=r"line search failed|did not converge"):
         newton(body, p, free, f, NewtonSettings(max_iterations=3))
+
+
+def test_reused_factorization_follows_the_active_set():
+    """A factor of one active set solves another exactly: newly held DOFs by the Schur
+    complement (CG converges at once), released ones by CG on the factor's diagonal."""
+    rng = np.random.default_rng(0)
+    n = 60
+    A = sparse.random(n, n, density=0.1, random_state=1)
+    K = (A @ A.T + n * sparse.eye(n)).tocsr()  # sparse SPD
+    linear = ReusedFactorization(rtol=1e-12, max_iterations=60, refactor_after=100)
+    keep0 = np.ones(n, bool)
+    keep0[[3, 7]] = False
+    b = np.where(keep0, rng.normal(size=n), 0.0)
+    np.testing.assert_allclose(constrained(K, keep0) @ linear.solve(K, b, keep0), b, atol=1e-9)
+    assert linear.factorizations == 1
+    for held, released in (([10, 11, 40], []), ([10, 20], [3])):
+        keep = keep0.copy()
+        keep[held], keep[released] = False, True
+        b = np.where(keep, rng.normal(size=n), 0.0)
+        d = linear.solve(K, b, keep)
+        np.testing.assert_allclose(constrained(K, keep) @ d, b, atol=1e-9)
+        assert not d[~keep].any() and linear.factorizations == 1
+        z = linear.preconditioner(keep)(b)
+        if not released:  # exact: the factor's inverse on the remaining DOFs
+            np.testing.assert_allclose(z, d, atol=1e-9)
