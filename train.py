@@ -10,7 +10,6 @@ side-by-side table) into the run folder, and prints the table.
 
 from __future__ import annotations
 
-import re
 import time
 from pathlib import Path
 
@@ -22,8 +21,8 @@ from omegaconf import DictConfig
 from fem.atomic import atomic_path
 from fem.cohort import run_cohort
 from mammo_net.callbacks import TreeBaseline
-
-COLUMNS = ("all_steps", "last_step")
+from mammo_net.inference import network_predictor, rows_predictor, save_predictions
+from mammo_net.metrics import comparison
 
 
 def ensure_cohort(cfg: DictConfig) -> str:
@@ -40,31 +39,6 @@ def logged(trainer: L.Trainer, baselines: list[TreeBaseline]) -> dict[str, float
     for c in baselines:
         out.update(c.results)
     return out
-
-
-def comparison(metrics: dict[str, float], stage: str) -> str:
-    """Markdown table: (mean, median) +- std of the per-breast RMSE, mm, per model."""
-    rows: dict[str, dict[str, float]] = {}
-    for key, value in metrics.items():
-        match = re.fullmatch(rf"{stage}/rmse_(\w+)_mm(?:/(\w+))?", key)
-        if match:
-            rows.setdefault(match[2] or "att_blstm", {})[match[1]] = value
-    lines = [
-        f"| model ({stage}) | all steps: (mean, median) +- std | last step: (mean, median) +- std |",
-        "| --- | --- | --- |",
-    ]
-    for model, m in rows.items():
-        cells = [
-            f"({m[f'{c}_mean']:.2f}, {m[f'{c}_median']:.2f}) +- {m[f'{c}_std']:.2f}"
-            if f"{c}_mean" in m
-            else "-"
-            for c in COLUMNS
-        ]
-        lines.append(f"| {model} | {cells[0]} | {cells[1]} |")
-    times = [
-        f"{k.split('/')[0]} {v:.0f} s" for k, v in metrics.items() if k.endswith("/fit_seconds")
-    ]
-    return "\n".join(lines) + "\n\nfit time: " + ", ".join(times) + "\n"
 
 
 def train(cfg: DictConfig) -> float:
@@ -97,7 +71,11 @@ def train(cfg: DictConfig) -> float:
         metrics = logged(trainer, baselines)
     metrics[f"att_blstm ({trainer.current_epoch} epochs)/fit_seconds"] = network
     table = comparison(metrics, stage)
-    if trainer.is_global_zero:
+    if trainer.is_global_zero:  # the validation breasts' predictions, mm, for the report
+        folder = Path(cfg.run_dir) / "predictions"
+        save_predictions(folder / "att_blstm.npz", network_predictor(model), dm.val)
+        for c in baselines:
+            save_predictions(folder / f"{c.name}.npz", rows_predictor(c.predict), dm.val)
         with atomic_path(Path(cfg.run_dir) / "results.md") as tmp:
             tmp.write_text(table)
         print(table)

@@ -18,6 +18,7 @@ from lightning.pytorch.callbacks import Callback
 
 from datamodules.trajectories import Breast
 from mammo_net import baselines
+from mammo_net.inference import breast_prediction, rows_predictor
 from mammo_net.metrics import breast_rmse, summarize
 
 
@@ -52,16 +53,11 @@ class TreeBaseline(Callback):
 
     def evaluate(self, breasts: list[Breast]) -> dict[str, float]:
         """Mean / median / std over ``breasts`` of the per-breast RMSE (all steps, last), mm."""
-        per = []
-        for breast in breasts:
-            features, targets = breast.features(), breast.targets()  # (N, T, F), (N, T, 3)
-            prediction = self.predict(np.asarray(features).reshape(-1, features.shape[-1]))
-            norm = breast.normalization()
-            per.append(
-                breast_rmse(
-                    norm.invert(prediction.reshape(targets.shape)), norm.invert(np.asarray(targets))
-                )
-            )
+        predict = rows_predictor(self.predict)
+        per = [
+            breast_rmse(breast_prediction(predict, b), b.normalization().invert(b.targets()))
+            for b in breasts
+        ]
         out = {}
         for key in ("all_steps", "last_step"):
             out.update({f"{key}_{k}": v for k, v in summarize([p[key] for p in per]).items()})

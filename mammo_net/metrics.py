@@ -7,6 +7,7 @@ the mean / median / standard deviation over the breasts.
 
 from __future__ import annotations
 
+import re
 from collections.abc import Sequence
 
 import numpy as np
@@ -39,6 +40,33 @@ def summarize(per_breast: Sequence[float]) -> dict[str, float]:
     """Mean, median and (population) standard deviation over breasts."""
     v = np.asarray(per_breast, float)
     return {"mean": float(v.mean()), "median": float(np.median(v)), "std": float(v.std())}
+
+
+def comparison(metrics: dict[str, float], stage: str) -> str:
+    """Markdown table of the paper's Tables 3/4: (mean, median) +- std of the per-breast RMSE,
+    mm, per model, from logged metrics ``{stage}/rmse_{all_steps,last_step}_{mean,median,std}_mm``
+    (the network) and ``.../<model>`` (a baseline); fit times from ``<model>/fit_seconds``."""
+    rows: dict[str, dict[str, float]] = {}
+    for key, value in metrics.items():
+        match = re.fullmatch(rf"{stage}/rmse_(\w+)_mm(?:/(\w+))?", key)
+        if match:
+            rows.setdefault(match[2] or "att_blstm", {})[match[1]] = value
+    lines = [
+        f"| model ({stage}) | all steps: (mean, median) +- std | last step: (mean, median) +- std |",
+        "| --- | --- | --- |",
+    ]
+    for model, m in rows.items():
+        cells = [
+            f"({m[f'{c}_mean']:.2f}, {m[f'{c}_median']:.2f}) +- {m[f'{c}_std']:.2f}"
+            if f"{c}_mean" in m
+            else "-"
+            for c in ("all_steps", "last_step")
+        ]
+        lines.append(f"| {model} | {cells[0]} | {cells[1]} |")
+    times = [
+        f"{k.split('/')[0]} {v:.0f} s" for k, v in metrics.items() if k.endswith("/fit_seconds")
+    ]
+    return "\n".join(lines) + "\n\nfit time: " + ", ".join(times) + "\n"
 
 
 class BreastErrors(Metric):

@@ -12,6 +12,9 @@ from omegaconf import OmegaConf
 
 import train
 from datamodules.trajectories import TrajectoryDataModule
+from fem.trajectory import Trajectory
+from mammo_net.inference import load_predictions
+from mammo_net.metrics import breast_rmse, comparison
 from mammo_net.module import SurrogateModule
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -48,6 +51,19 @@ def test_train_prints_the_comparison(trajectory_folder, tmp_path, capsys):
     assert (tmp_path / "baselines" / "ert.npz").exists()
     assert list((tmp_path / "checkpoints").glob("*.ckpt"))
     assert list((tmp_path / "tensorboard").glob("events.out.tfevents.*"))
+    # The saved predictions (mm) reproduce the table's test errors against the FE positions.
+    for model in ("xgboost", "ert", "att_blstm"):
+        predictions = load_predictions(tmp_path / "predictions" / f"{model}.npz")
+        assert len(predictions) == 6  # the validation breasts
+        errors = [
+            breast_rmse(
+                p, Trajectory.load(trajectory_folder / f"{name}.npz").compressed.transpose(1, 0, 2)
+            )
+            for name, p in predictions.items()
+        ]
+        mean = sum(e["last_step"] for e in errors) / len(errors)
+        row = next(line for line in table.splitlines() if line.startswith(f"| {model} |"))
+        assert row.split("| (")[2].startswith(f"{mean:.2f},")  # last step: (mean, ...
 
 
 @pytest.mark.parametrize("experiment", ["paper_compression", "paper_unloaded"])
@@ -155,5 +171,5 @@ def test_two_process_cpu_ddp(trajectory_folder, tmp_path):
     dm.setup()
     trainer = L.Trainer(accelerator="cpu", logger=False, enable_progress_bar=False)
     single = trainer.test(model, dm, verbose=False)[0]
-    expected = train.comparison(single, "test").splitlines()[2]
+    expected = comparison(single, "test").splitlines()[2]
     assert expected in logged.splitlines()

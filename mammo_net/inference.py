@@ -1,0 +1,72 @@
+"""Predicted node trajectories of whole breasts, in millimetres, and their files.
+
+Every model (the Att-BLSTM checkpoint and the tree baselines) predicts a breast's cached
+features ``(N, T, F)`` as normalised coordinates; `breast_prediction` maps them back with the
+breast's equation-1 statistics. ``predictions/<model>.npz`` in a run folder holds one
+``(N, T, 3)`` float32 array per breast name, the input of the evaluation report.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable
+from pathlib import Path
+
+import numpy as np
+import torch
+from numpy.typing import NDArray
+
+from datamodules.trajectories import Breast
+from fem.atomic import atomic_path
+
+
+def network_predictor(
+    model: torch.nn.Module, batch_size: int = 4096
+) -> Callable[[NDArray], NDArray[np.float32]]:
+    """``(N, T, F) -> (N, T, 3)`` normalised predictions of a sequence model, in batches."""
+
+    def predict(features: NDArray) -> NDArray[np.float32]:
+        model.eval()
+        device = next(model.parameters()).device
+        out = []
+        with torch.no_grad():
+            for start in range(0, len(features), batch_size):
+                x = torch.as_tensor(np.asarray(features[start : start + batch_size]), device=device)
+                out.append(model(x).float().cpu().numpy())  # (B, T, 3)
+        return np.concatenate(out)
+
+    return predict
+
+
+def rows_predictor(
+    predict_rows: Callable[[NDArray], NDArray],
+) -> Callable[[NDArray], NDArray[np.float32]]:
+    """``(N, T, F) -> (N, T, 3)`` from a row model ``(rows, F) -> (rows, 3)`` (the trees)."""
+
+    def predict(features: NDArray) -> NDArray[np.float32]:
+        f = np.asarray(features)
+        return np.asarray(predict_rows(f.reshape(-1, f.shape[-1])), np.float32).reshape(
+            *f.shape[:2], 3
+        )
+
+    return predict
+
+
+def breast_prediction(predict: Callable[[NDArray], NDArray], breast: Breast) -> NDArray[np.float32]:
+    """A breast's predicted node coordinates per step, (N, T, 3) mm."""
+    return breast.normalization().invert(predict(breast.features())).astype(np.float32)
+
+
+def save_predictions(
+    path: str | Path, predict: Callable[[NDArray], NDArray], breasts: Iterable[Breast]
+) -> Path:
+    """Write ``{breast name: (N, T, 3) mm}`` for ``breasts`` to ``path`` (.npz, atomically)."""
+    arrays = {b.name: breast_prediction(predict, b) for b in breasts}
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        np.savez_compressed(f, **arrays)
+    return Path(path)
+
+
+def load_predictions(path: str | Path) -> dict[str, NDArray[np.float32]]:
+    """The ``{breast name: (N, T, 3) mm}`` arrays of `save_predictions` (no pickle)."""
+    with np.load(path, allow_pickle=False) as data:
+        return {k: data[k] for k in data.files}
