@@ -30,7 +30,7 @@ def network_predictor(
         out = []
         with torch.no_grad():
             for start in range(0, len(features), batch_size):
-                x = torch.as_tensor(np.asarray(features[start : start + batch_size]), device=device)
+                x = torch.as_tensor(np.array(features[start : start + batch_size]), device=device)
                 out.append(model(x).float().cpu().numpy())  # (B, T, 3)
         return np.concatenate(out)
 
