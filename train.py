@@ -2,7 +2,7 @@
 
     python train.py                                   # embedded default: small cohort, minutes
     python train.py experiment=paper_compression      # the paper's run on the 516-breast cohort
-    python train.py -m experiment=paper_compression data.split=k_fold data.fold=0,1,2,3,4,5,6,7,8,9
+    python train.py -m experiment=paper_compression data.fold=0,1,2,3,4,5,6,7,8,9
 
 Writes TensorBoard logs, checkpoints, the baselines' model files and ``results.md`` (the
 side-by-side table) into the run folder, and prints the table.

@@ -121,10 +121,13 @@ class TrajectoryDataModule(L.LightningDataModule):
         Folder of simulated ``P*_[LR].npz`` trajectories.
     step : {"unloaded", "compression"}
         Which simulation step the models learn.
-    split : {"one_fold", "k_fold"}
+    split : {"one_fold", "k_fold"}, optional
         The paper's 90/10 split with a site-balanced validation set, or k-fold
-        cross-validation (``fold`` is the validation fold).
-    fold, n_folds, val_fraction, seed
+        cross-validation; by default k-fold when ``fold`` is given, else one-fold (so
+        ``-m data.fold=0,1,...,9`` is the 10-fold cross-validation).
+    fold : int, optional
+        The validation fold of the k-fold split.
+    n_folds, val_fraction, seed
         Split parameters (`datamodules.splits`).
     batch_size, num_workers
         Of the sequence loaders.
@@ -136,8 +139,8 @@ class TrajectoryDataModule(L.LightningDataModule):
         self,
         data_dir: str,
         step: str = "compression",
-        split: str = "one_fold",
-        fold: int = 0,
+        split: str | None = None,
+        fold: int | None = None,
         n_folds: int = 10,
         val_fraction: float = 0.1,
         seed: int = 0,
@@ -148,8 +151,15 @@ class TrajectoryDataModule(L.LightningDataModule):
         super().__init__()
         if step not in STEPS:
             raise ValueError(f"step must be one of {sorted(STEPS)}, got {step!r}")
+        split = split or ("one_fold" if fold is None else "k_fold")
         if split not in ("one_fold", "k_fold"):
             raise ValueError(f"split must be 'one_fold' or 'k_fold', got {split!r}")
+        if split == "k_fold" and not 0 <= (fold or 0) < n_folds:
+            raise ValueError(f"fold must be in 0..{n_folds - 1} for k_fold, got {fold!r}")
+        if split == "one_fold" and fold is not None:
+            raise ValueError(
+                f"fold={fold} selects a k-fold validation fold; the one-fold split has none"
+            )
         self.save_hyperparameters()
         self.data_dir = Path(data_dir)
         self.cache = Path(cache_dir) if cache_dir else self.data_dir / "cache"
@@ -189,7 +199,7 @@ class TrajectoryDataModule(L.LightningDataModule):
             _, val = one_fold_split(patients, sites, hp.val_fraction, hp.seed)
         else:
             fold = k_folds(patients, sites, hp.n_folds, hp.seed)
-            val = patients[fold == hp.fold]
+            val = patients[fold == (hp.fold or 0)]
         self.val = [b for b in breasts if b.patient in set(val.tolist())]
         self.train = [b for b in breasts if b.patient not in set(val.tolist())]
 

@@ -33,11 +33,17 @@ def test_sequences_and_rows(trajectory_folder, step, n_features, n_steps):
 def test_k_fold_and_cache_reuse(trajectory_folder):
     folds = []
     for k in range(4):
-        dm = TrajectoryDataModule(str(trajectory_folder), split="k_fold", n_folds=4, fold=k)
+        dm = TrajectoryDataModule(str(trajectory_folder), n_folds=4, fold=k)  # a fold: k-fold
         dm.prepare_data()
         dm.setup()
         folds.append({b.patient for b in dm.val})
+    assert dm.hparams.split == "k_fold"
     assert set().union(*folds) == set(range(12)) and sum(map(len, folds)) == 12
+    assert TrajectoryDataModule(str(trajectory_folder)).hparams.split == "one_fold"
+    with pytest.raises(ValueError, match="the one-fold split has none"):
+        TrajectoryDataModule(str(trajectory_folder), split="one_fold", fold=2)
+    with pytest.raises(ValueError, match=r"fold must be in 0\.\.3"):
+        TrajectoryDataModule(str(trajectory_folder), n_folds=4, fold=4)
     stamp = (
         (trajectory_folder / "cache" / "compression" / "P0000_L.features.npy").stat().st_mtime_ns
     )
