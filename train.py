@@ -26,9 +26,10 @@ from mammo_net.metrics import comparison
 
 
 def ensure_cohort(cfg: DictConfig) -> str:
-    """The trajectory folder; the configured cohort is generated and simulated if it is empty."""
+    """The trajectory folder. When it is the configured cohort's, the cohort is built, or a
+    partial build finished (resumable: finished breasts are skipped), before training."""
     data_dir = Path(to_absolute_path(cfg.data.data_dir))
-    if not any(data_dir.glob("P*_[LR].npz")):
+    if data_dir == Path(to_absolute_path(cfg.cohort.out_dir)) / "trajectories":
         run_cohort(cfg.cohort)
     return str(data_dir)
 

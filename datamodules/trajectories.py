@@ -202,6 +202,11 @@ class TrajectoryDataModule(L.LightningDataModule):
             val = patients[fold == (hp.fold or 0)]
         self.val = [b for b in breasts if b.patient in set(val.tolist())]
         self.train = [b for b in breasts if b.patient not in set(val.tolist())]
+        if not self.train or not self.val:
+            raise ValueError(
+                f"{self.data_dir}: {len(patients)} patients give an empty "
+                f"{'training' if not self.train else 'validation'} split ({hp.split})"
+            )
 
     def train_dataloader(self) -> DataLoader:
         return DataLoader(

@@ -53,6 +53,15 @@ def test_k_fold_and_cache_reuse(trajectory_folder):
     ).stat().st_mtime_ns == stamp
 
 
+def test_a_partial_cohort_is_a_clear_error(tmp_path):
+    for lat in "LR":  # one patient: the one-fold split has no validation patient
+        tiny_trajectory(lat, patient=0, site="A").save(tmp_path / f"P0000_{lat}.npz")
+    dm = TrajectoryDataModule(str(tmp_path))
+    dm.prepare_data()
+    with pytest.raises(ValueError, match="1 patients give an empty validation split"):
+        dm.setup()
+
+
 def test_errors(tmp_path):
     with pytest.raises(ValueError, match="step must be one of"):
         TrajectoryDataModule(str(tmp_path), step="gravity")
