@@ -15,13 +15,16 @@ import argparse
 import itertools
 import statistics
 import time
+from pathlib import Path
 
 import torch
+from hydra import compose, initialize_config_dir
+from hydra.utils import instantiate
 
 from datamodules.trajectories import TrajectoryDataModule
 from mammo_net.module import SurrogateModule
 
-ACTIVATIONS = {"unloaded": ("tanh", "relu"), "compression": ("sigmoid", "sigmoid")}
+CONF = str(Path(__file__).resolve().parents[1] / "conf")
 
 
 def main() -> None:
@@ -29,7 +32,7 @@ def main() -> None:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     ap.add_argument("data_dir", help="folder of simulated trajectories (P0001_L.npz ...)")
-    ap.add_argument("--step", choices=sorted(ACTIVATIONS), default="compression")
+    ap.add_argument("--step", choices=["unloaded", "compression"], default="compression")
     ap.add_argument("--batch-size", type=int, default=256)
     ap.add_argument("--hidden", type=int, default=64)
     ap.add_argument("--batches", type=int, default=40, help="timed batches per repeat")
@@ -44,9 +47,9 @@ def main() -> None:
     )
     dm.prepare_data()
     dm.setup()
-    model = SurrogateModule(
-        n_features=len(dm.feature_names), hidden=args.hidden, activations=ACTIVATIONS[args.step]
-    )
+    with initialize_config_dir(config_dir=CONF, version_base="1.3"):  # the paper's model
+        cfg = compose("train", overrides=[f"experiment=paper_{args.step}"])
+    model: SurrogateModule = instantiate(cfg.model, hidden=args.hidden)
     model.set_feature_normalization(*dm.feature_statistics())
     model.to(args.device).train()
     optimizer = model.configure_optimizers()

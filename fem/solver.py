@@ -101,8 +101,8 @@ class ReusedFactorization:
     Schur complement: with ``Z = A0^-1 E`` for their unit vectors ``E`` (one back-substitution
     per DOF, cached while the factor lives), ``z = A0^-1 r - Z (E^T Z)^-1 Z^T r`` is the
     inverse of ``A0`` on the remaining DOFs. DOFs free now but held in the factor get the
-    factor's diagonal (`constrained` keeps it). So a growing contact area costs a few back-substitutions instead of a
-    factorization per load step. When CG needs more than ``refactor_after`` iterations (the
+    factor's diagonal (`constrained` keeps it). So a growing contact area costs a few
+    back-substitutions instead of a factorization per load step. When CG needs more than ``refactor_after`` iterations (the
     tangent has drifted), the next solve factorizes afresh; when it does not reach ``rtol``
     within ``max_iterations``, this one does.
 

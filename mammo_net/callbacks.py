@@ -19,7 +19,7 @@ from lightning.pytorch.callbacks import Callback
 from datamodules.trajectories import Breast
 from mammo_net import baselines
 from mammo_net.inference import breast_prediction, rows_predictor
-from mammo_net.metrics import breast_rmse, summarize
+from mammo_net.metrics import breast_rmse, summarize_breasts
 
 
 class TreeBaseline(Callback):
@@ -54,14 +54,12 @@ class TreeBaseline(Callback):
     def evaluate(self, breasts: list[Breast]) -> dict[str, float]:
         """Mean / median / std over ``breasts`` of the per-breast RMSE (all steps, last), mm."""
         predict = rows_predictor(self.predict)
-        per = [
-            breast_rmse(breast_prediction(predict, b), b.normalization().invert(b.targets()))
-            for b in breasts
-        ]
-        out = {}
-        for key in ("all_steps", "last_step"):
-            out.update({f"{key}_{k}": v for k, v in summarize([p[key] for p in per]).items()})
-        return out
+        return summarize_breasts(
+            [
+                breast_rmse(breast_prediction(predict, b), b.normalization().invert(b.targets()))
+                for b in breasts
+            ]
+        )
 
     def _log(self, trainer: L.Trainer, stage: str) -> None:
         dm = trainer.datamodule

@@ -42,6 +42,14 @@ def summarize(per_breast: Sequence[float]) -> dict[str, float]:
     return {"mean": float(v.mean()), "median": float(np.median(v)), "std": float(v.std())}
 
 
+def summarize_breasts(per_breast: Sequence[dict[str, float]]) -> dict[str, float]:
+    """``{all_steps,last_step}_{mean,median,std}`` over breasts from their `breast_rmse`."""
+    out = {}
+    for key in ("all_steps", "last_step"):
+        out.update({f"{key}_{k}": v for k, v in summarize([p[key] for p in per_breast]).items()})
+    return out
+
+
 def comparison(metrics: dict[str, float], stage: str) -> str:
     """Markdown table of the paper's Tables 3/4: (mean, median) +- std of the per-breast RMSE,
     mm, per model, from logged metrics ``{stage}/rmse_{all_steps,last_step}_{mean,median,std}_mm``
@@ -113,8 +121,10 @@ class BreastErrors(Metric):
         _, first = np.unique(node, return_index=True)
         ids, breast = np.unique(breast[first], return_inverse=True)
         counts = np.bincount(breast, minlength=len(ids))
-        out = {}
-        for name, e in (("all_steps", all_steps[first]), ("last_step", last_step[first])):
-            per = np.bincount(breast, weights=e, minlength=len(ids)) / counts
-            out.update({f"{name}_{k}": v for k, v in summarize(per).items()})
-        return out
+        per = {  # per-breast mean node RMSE, (breasts,) each
+            name: np.bincount(breast, weights=e[first], minlength=len(ids)) / counts
+            for name, e in (("all_steps", all_steps), ("last_step", last_step))
+        }
+        return summarize_breasts(
+            [dict(zip(per, values, strict=True)) for values in zip(*per.values(), strict=True)]
+        )
