@@ -70,11 +70,14 @@ def train(cfg: DictConfig) -> float:
         best = trainer.checkpoint_callback.best_model_path if trainer.checkpoint_callback else ""
         trainer.test(model, dm, ckpt_path=best or None, weights_only=True)
         metrics = logged(trainer, baselines)
-    metrics[f"att_blstm ({trainer.current_epoch} epochs)/fit_seconds"] = network
+    trained = trainer.global_step > 0  # False for baseline-only runs (trainer.max_epochs=0)
+    if trained:
+        metrics[f"att_blstm ({trainer.current_epoch} epochs)/fit_seconds"] = network
     table = comparison(metrics, stage)
     if trainer.is_global_zero:  # the validation breasts' predictions, mm, for the report
         folder = Path(cfg.run_dir) / "predictions"
-        save_predictions(folder / "att_blstm.npz", network_predictor(model), dm.val)
+        if trained:
+            save_predictions(folder / "att_blstm.npz", network_predictor(model), dm.val)
         for c in baselines:
             save_predictions(folder / f"{c.name}.npz", rows_predictor(c.predict), dm.val)
         with atomic_path(Path(cfg.run_dir) / "results.md") as tmp:

@@ -160,7 +160,7 @@ def breast_sections_png(
         wspace=0.3,
         hspace=0.3,
     )
-    return _save(fig, path)
+    return save_png(fig, path)
 
 
 def cohort_summary_png(rows: Sequence[dict], path: str | Path) -> Path:
@@ -202,10 +202,11 @@ def cohort_summary_png(rows: Sequence[dict], path: str | Path) -> Path:
         f"Virtual cohort: {len({r['patient'] for r in rows})} patients, {len(rows)} breasts"
     )
     fig.tight_layout()
-    return _save(fig, path)
+    return save_png(fig, path)
 
 
-def _save(fig: plt.Figure, path: str | Path) -> Path:
+def save_png(fig: plt.Figure, path: str | Path) -> Path:
+    """Write ``fig`` to ``path`` atomically (PNG, 90 dpi) and close it."""
     path = Path(path)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=90)
@@ -322,4 +323,4 @@ def simulation_summary_png(rows: Sequence[dict], path: str | Path) -> Path:
 
     fig.suptitle(f"Simulation of {len(rows)} breasts: {len(ok)} converged, {len(failed)} failed")
     fig.tight_layout()
-    return _save(fig, path)
+    return save_png(fig, path)

@@ -3,11 +3,16 @@
 Every model (the Att-BLSTM checkpoint and the tree baselines) predicts a breast's cached
 features ``(N, T, F)`` as normalised coordinates; `breast_prediction` maps them back with the
 breast's equation-1 statistics. ``predictions/<model>.npz`` in a run folder holds one
-``(N, T, 3)`` float32 array per breast name, the input of the evaluation report.
+``(N, T, 3)`` float32 array per breast name, the input of the evaluation report; beside it,
+``<model>.json`` records how long each breast's prediction took and on what machine.
 """
 
 from __future__ import annotations
 
+import json
+import os
+import platform
+import time
 from collections.abc import Callable, Iterable
 from pathlib import Path
 
@@ -59,10 +64,24 @@ def breast_prediction(predict: Callable[[NDArray], NDArray], breast: Breast) -> 
 def save_predictions(
     path: str | Path, predict: Callable[[NDArray], NDArray], breasts: Iterable[Breast]
 ) -> Path:
-    """Write ``{breast name: (N, T, 3) mm}`` for ``breasts`` to ``path`` (.npz, atomically)."""
-    arrays = {b.name: breast_prediction(predict, b) for b in breasts}
+    """Write ``{breast name: (N, T, 3) mm}`` for ``breasts`` to ``path`` (.npz, atomically) and
+    the wall time of each breast's prediction (cached features to millimetres, s) to
+    ``path.with_suffix(".json")``, with the machine it ran on."""
+    arrays, seconds = {}, {}
+    for b in breasts:
+        start = time.perf_counter()
+        arrays[b.name] = breast_prediction(predict, b)
+        seconds[b.name] = time.perf_counter() - start
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
         np.savez_compressed(f, **arrays)
+    machine = {
+        "cpu_count": os.cpu_count(),
+        "torch_threads": torch.get_num_threads(),
+        "processor": platform.processor() or platform.machine(),
+        "cuda": torch.cuda.get_device_name() if torch.cuda.is_available() else None,
+    }
+    with atomic_path(Path(path).with_suffix(".json")) as tmp:
+        tmp.write_text(json.dumps({"seconds": seconds, "machine": machine}, indent=1))
     return Path(path)
 
 
@@ -70,3 +89,9 @@ def load_predictions(path: str | Path) -> dict[str, NDArray[np.float32]]:
     """The ``{breast name: (N, T, 3) mm}`` arrays of `save_predictions` (no pickle)."""
     with np.load(path, allow_pickle=False) as data:
         return {k: data[k] for k in data.files}
+
+
+def load_prediction_seconds(path: str | Path) -> dict[str, float]:
+    """``{breast name: prediction wall time, s}`` saved beside ``path``; empty if none was."""
+    timing = Path(path).with_suffix(".json")
+    return json.loads(timing.read_text())["seconds"] if timing.exists() else {}

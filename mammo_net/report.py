@@ -1,0 +1,436 @@
+"""The evaluation report: the reference paper's tables and figures, and more, from saved
+predictions, without retraining.
+
+    python -m mammo_net.report                                  # the cross-validation and one-fold runs
+    python -m mammo_net.report 'runs=[outputs/train/2026-11-23_20-00-00]' out_dir=outputs/report/mine
+
+Every run folder (a ``train.py`` run, or one fold of a ``-m data.fold=0,...,9`` sweep) holds
+``predictions/<model>.npz`` for its validation breasts and its ``.hydra/config.yaml``, which
+says the simulation step, the trajectory folder and the split. Runs of the same split and
+step are merged (the folds of a cross-validation cover the cohort once) and compared with the
+FE trajectories. ``out_dir`` receives ``report.md`` (every table), ``report.json`` (every
+number), ``per_breast.csv``, ``per_step.csv`` and ``figures/*.png``.
+"""
+
+from __future__ import annotations
+
+import csv
+import glob
+import json
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import hydra
+import numpy as np
+from numpy.typing import NDArray
+from omegaconf import DictConfig, OmegaConf
+
+from fem.atomic import atomic_path
+from fem.trajectory import TISSUE_BIT, NodeFlag, Tissue, Trajectory
+from mammo_net import evaluation as ev
+from mammo_net.inference import load_prediction_seconds, load_predictions
+from mammo_net.metrics import node_rmse, summarize, summarize_breasts
+
+#: Pure-tissue node codes (interface nodes, whose code has several bits, are left out).
+TISSUE_CODES = {t.name.lower(): TISSUE_BIT[t] for t in (Tissue.FAT, Tissue.GLAND, Tissue.MUSCLE)}
+
+
+@dataclass
+class BreastTruth:
+    """What the report needs of one simulated breast for one step."""
+
+    name: str
+    positions: NDArray[np.float64]  # (N, T, 3) FE node positions per recorded step, mm
+    tissue_code: NDArray[np.uint8]  # (N,) paper's Table 2 code
+    surface: NDArray[np.bool_]  # (N,) skin nodes
+    compression_ratio: NDArray[np.float64] | None  # (T,) compression step only
+    volume_cm3: float
+    fe_seconds: float  # the FE solver's wall time for this step, s
+    path: Path
+
+
+@dataclass
+class ModelResult:
+    """One model's predictions of one step in one split, as node errors per breast."""
+
+    model: str
+    errors: dict[str, NDArray[np.float32]] = field(default_factory=dict)  # name -> (N, T) mm
+    seconds: dict[str, float] = field(default_factory=dict)  # name -> prediction time, s
+    sources: dict[str, Path] = field(default_factory=dict)  # name -> predictions file
+
+
+@dataclass
+class Evaluation:
+    """All models of one (split, step): the breasts' truth and each model's errors."""
+
+    split: str
+    step: str
+    truth: dict[str, BreastTruth]
+    models: dict[str, ModelResult]
+
+    @property
+    def label(self) -> str:
+        return f"{self.split}, {self.step}"
+
+    @property
+    def slug(self) -> str:
+        return f"{self.split}_{self.step}".replace(" ", "_").replace("-", "_")
+
+
+def load_truth(path: Path, step: str) -> BreastTruth:
+    """The FE positions of ``step`` and the node facts of the trajectory file ``path``."""
+    traj = Trajectory.load(path)
+    positions = traj.compressed if step == "compression" else traj.unloaded
+    if not len(positions):
+        raise ValueError(f"{path}: field {step!r} has no simulated steps")
+    seconds = traj.metadata.get("simulation", {}).get("seconds", {}).get(step, float("nan"))
+    return BreastTruth(
+        name=path.stem,
+        positions=positions.transpose(1, 0, 2),
+        tissue_code=traj.node_tissue_code,
+        surface=(traj.node_flags & NodeFlag.SKIN) > 0,
+        compression_ratio=traj.compression_ratio if step == "compression" else None,
+        volume_cm3=float(traj.metadata.get("breast_volume_cm3", float("nan"))),
+        fe_seconds=float(seconds),
+        path=path,
+    )
+
+
+def run_settings(run: Path) -> tuple[str, str, Path]:
+    """(split label, step, trajectory folder) of a run folder, from its ``.hydra/config.yaml``."""
+    config = run / ".hydra" / "config.yaml"
+    if not config.exists():
+        raise FileNotFoundError(f"{config}: not found; is {run} a train.py run folder?")
+    data = OmegaConf.load(config).data
+    split = data.get("split") or ("k_fold" if data.get("fold") is not None else "one_fold")
+    label = f"{data.n_folds}-fold CV" if split == "k_fold" else "one-fold"
+    return label, str(data.step), Path(str(data.data_dir))
+
+
+def collect(runs: Iterable[str | Path], data_dir: str | Path | None = None) -> list[Evaluation]:
+    """Merge the predictions of run folders by (split, step) and score them against the FE.
+
+    Parameters
+    ----------
+    runs
+        Run folders (glob patterns allowed) holding ``predictions/<model>.npz``.
+    data_dir
+        The trajectory folder; by default each run's own ``data.data_dir``.
+    """
+    folders = [Path(p) for pattern in runs for p in sorted(glob.glob(str(pattern)))]
+    if not folders:
+        raise FileNotFoundError(f"no run folder matches {list(runs)}")
+    evaluations: dict[tuple[str, str], Evaluation] = {}
+    for run in folders:
+        split, step, own_data = run_settings(run)
+        files = sorted((run / "predictions").glob("*.npz"))
+        if not files:
+            continue
+        folder = Path(data_dir) if data_dir is not None else own_data
+        e = evaluations.setdefault((split, step), Evaluation(split, step, {}, {}))
+        for file in files:
+            result = e.models.setdefault(file.stem, ModelResult(file.stem))
+            seconds = load_prediction_seconds(file)
+            for name, prediction in load_predictions(file).items():
+                if name in result.errors:
+                    raise ValueError(
+                        f"{file}: breast {name} was already predicted in {result.sources[name]}"
+                    )
+                if name not in e.truth:
+                    e.truth[name] = load_truth(folder / f"{name}.npz", step)
+                truth = e.truth[name].positions
+                if prediction.shape != truth.shape:
+                    raise ValueError(
+                        f"{file}: field {name!r} has shape {prediction.shape}, the FE "
+                        f"trajectory {truth.shape}"
+                    )
+                result.errors[name] = node_rmse(prediction, truth).astype(np.float32)
+                result.sources[name] = file
+                if name in seconds:
+                    result.seconds[name] = seconds[name]
+    if not evaluations:
+        raise FileNotFoundError(f"no predictions/*.npz in {[str(f) for f in folders]}")
+    return sorted(evaluations.values(), key=lambda e: (e.split, e.step))
+
+
+# --- numbers -------------------------------------------------------------------------------
+
+
+def breast_errors(result: ModelResult, truth: dict[str, BreastTruth]) -> dict[str, dict]:
+    """Per breast: ``all_steps`` and ``last_step`` RMSE, ``surface_*`` (skin nodes) and the
+    error at each step (mm)."""
+    out = {}
+    for name, e in result.errors.items():
+        skin = truth[name].surface
+        out[name] = {
+            "all_steps": float(e.mean()),
+            "last_step": float(e[:, -1].mean()),
+            "surface_all_steps": float(e[skin].mean()) if skin.any() else float("nan"),
+            "surface_last_step": float(e[skin, -1].mean()) if skin.any() else float("nan"),
+            "per_step": e.mean(0),
+        }
+    return out
+
+
+def model_summary(
+    result: ModelResult,
+    truth: dict[str, BreastTruth],
+    ratio_of_interest: float,
+) -> dict[str, float]:
+    """Every scalar of one model on one (split, step): the paper's and the extra ones."""
+    per = breast_errors(result, truth)
+    names = list(per)
+    out = summarize_breasts([per[n] for n in names])
+    for key in ("surface_all_steps", "surface_last_step"):
+        out.update({f"{key}_{k}": v for k, v in summarize([per[n][key] for n in names]).items()})
+    nodes_all = np.concatenate([result.errors[n].mean(1) for n in names])  # node, all steps
+    nodes_last = np.concatenate([result.errors[n][:, -1] for n in names])
+    steps = np.concatenate([result.errors[n].ravel() for n in names])  # node x step
+    out |= {
+        "node_all_steps_p95": float(np.percentile(nodes_all, 95)),
+        "node_last_step_p95": float(np.percentile(nodes_last, 95)),
+        "node_step_p95": float(np.percentile(steps, 95)),
+        "node_step_max": float(steps.max()),
+        "n_breasts": len(names),
+    }
+    for tissue, code in TISSUE_CODES.items():
+        e = np.concatenate([result.errors[n].mean(1)[truth[n].tissue_code == code] for n in names])
+        mean, sd = ev.mean_sd(e) if len(e) else (float("nan"), float("nan"))
+        mu, sigma = ev.lognormal_fit(e)
+        out |= {f"{tissue}_mean": mean, f"{tissue}_std": sd, f"{tissue}_mu": mu}
+        out |= {f"{tissue}_sigma": sigma, f"{tissue}_nodes": len(e)}
+    if all(truth[n].compression_ratio is not None for n in names):
+        at = np.array(
+            [
+                ev.value_at(truth[n].compression_ratio, per[n]["per_step"], ratio_of_interest)
+                for n in names
+            ]
+        )
+        at = at[np.isfinite(at)]
+        if len(at):
+            out |= {f"at_ratio_{k}": v for k, v in summarize(at).items()}
+            out["at_ratio_breasts"] = len(at)
+    timed = [result.seconds[n] for n in names if n in result.seconds]
+    if timed:
+        out["predict_seconds_median"] = float(np.median(timed))
+    return out
+
+
+def ratio_curve(
+    result: ModelResult, truth: dict[str, BreastTruth], width: float
+) -> tuple[NDArray, NDArray, NDArray]:
+    """Mean breast RMSE per compression-ratio bin over every recorded step of every breast:
+    bin centres, means, counts (the paper's Fig. 12, 13)."""
+    ratio = np.concatenate([truth[n].compression_ratio for n in result.errors])
+    rmse = np.concatenate([e.mean(0) for e in result.errors.values()])
+    return ev.binned_means(ratio, rmse, width)
+
+
+def ratio_fits(
+    centres: NDArray, means: NDArray, linear_max: float
+) -> dict[str, float | list[float]]:
+    """exp2 fit over every bin, and the line over bins up to ``linear_max``, with r^2."""
+    p, r2 = ev.fit_exp2(centres, means)
+    below = centres <= linear_max
+    line, line_r2 = ev.fit_line(centres[below], means[below])
+    return {"exp2": p.tolist(), "exp2_r2": r2, "linear": line.tolist(), "linear_r2": line_r2}
+
+
+def volume_correlation(result: ModelResult, truth: dict[str, BreastTruth]) -> float:
+    """Pearson r between breast volume and all-steps breast RMSE (the paper's Fig. 15)."""
+    names = list(result.errors)
+    return ev.pearson_r(
+        [truth[n].volume_cm3 for n in names], [result.errors[n].mean() for n in names]
+    )
+
+
+def ranked_breasts(e: Evaluation) -> list[str]:
+    """Breasts predicted by every model, from the lowest to the highest mean over the models of
+    their all-steps RMSE."""
+    common = set.intersection(*(set(r.errors) for r in e.models.values()))
+    score = {n: np.mean([r.errors[n].mean() for r in e.models.values()]) for n in common}
+    return sorted(score, key=lambda n: (score[n], n))
+
+
+# --- tables --------------------------------------------------------------------------------
+
+
+def _cell(s: dict, key: str) -> str:
+    """``(mean, median) +- std`` of ``s[key_*]``, or ``-``."""
+    if not np.isfinite(s.get(f"{key}_mean", np.nan)):
+        return "-"
+    return f"({s[f'{key}_mean']:.2f}, {s[f'{key}_median']:.2f}) +- {s[f'{key}_std']:.2f}"
+
+
+def _tissue(s: dict, tissue: str) -> str:
+    return (
+        f"{s[f'{tissue}_mean']:.2f} +- {s[f'{tissue}_std']:.2f} "
+        f"({s[f'{tissue}_mu']:.2f}, {s[f'{tissue}_sigma']:.2f})"
+    )
+
+
+def _timing(fe: float, s: dict) -> list[str]:
+    t = s.get("predict_seconds_median")
+    if t is None:
+        return [f"{fe:.1f}", "-", "-"]
+    return [f"{fe:.1f}", f"{t:.4f}", f"{fe / t:,.0f}x"]
+
+
+def _table(
+    evaluations: list[Evaluation],
+    header: Sequence[str],
+    cells: Callable[[Evaluation, str], list[str]],
+) -> str:
+    """Markdown table: one row per (split, step, model), ``cells(evaluation, model)`` after."""
+    lines = ["| " + " | ".join(["split", "step", "model", *header]) + " |"]
+    lines.append("|" + " --- |" * (len(header) + 3))
+    for e in evaluations:
+        lines += ["| " + " | ".join([e.split, e.step, m, *cells(e, m)]) + " |" for m in e.models]
+    return "\n".join(lines) + "\n"
+
+
+def markdown(evaluations: list[Evaluation], numbers: dict, cfg: DictConfig) -> str:
+    """Every table of the report, in markdown."""
+    s, fits, r = numbers["summary"], numbers["compression_ratio"], cfg.ratio_of_interest
+    sections = [
+        "# Evaluation report\n\nPer-breast RMSE (equation 2) of every model against the FE, mm.",
+        "## Per-breast RMSE (paper Tables 3, 4, 7): (mean, median) +- std, mm",
+        _table(
+            evaluations,
+            ["breasts", "all steps", "last step"],
+            lambda e, m: [
+                str(s[e.slug][m]["n_breasts"]),
+                _cell(s[e.slug][m], "all_steps"),
+                _cell(s[e.slug][m], "last_step"),
+            ],
+        ),
+        "## Per tissue (paper Table 5): node RMSE over all steps, mean +- std (log-normal mu, "
+        "sigma of ln RMSE), mm; interface nodes left out",
+        _table(
+            evaluations,
+            [*TISSUE_CODES, "nodes (" + " / ".join(TISSUE_CODES) + ")"],
+            lambda e, m: (
+                [_tissue(s[e.slug][m], t) for t in TISSUE_CODES]
+                + [" / ".join(str(s[e.slug][m][f"{t}_nodes"]) for t in TISSUE_CODES)]
+            ),
+        ),
+        f"## Beyond the paper: node percentiles, skin nodes, error at {r:.0%} compression, mm\n\n"
+        "p95 and max: over every node and step. Skin: per-breast RMSE of the skin nodes (what "
+        f"image registration matches), (mean, median) +- std. At {r:.0%}: per-breast RMSE "
+        "interpolated at that compression ratio, breasts compressed that far.",
+        _table(
+            evaluations,
+            ["p95", "max", "skin, all steps", "skin, last step", f"at {r:.0%} ratio"],
+            lambda e, m: [
+                f"{s[e.slug][m]['node_step_p95']:.2f}",
+                f"{s[e.slug][m]['node_step_max']:.2f}",
+                _cell(s[e.slug][m], "surface_all_steps"),
+                _cell(s[e.slug][m], "surface_last_step"),
+                _cell(s[e.slug][m], "at_ratio"),
+            ],
+        ),
+        "## Compression ratio and breast volume (paper Fig. 12, 13, 15)\n\n"
+        "r^2 of the fits of the mean RMSE per 1 % compression-ratio bin (exp2: a exp(bx) + "
+        f"c exp(dx); line: bins up to {cfg.linear_fit_max_ratio:.0%}); Pearson r between "
+        "breast volume and all-steps RMSE.",
+        _table(
+            evaluations,
+            ["exp2 r^2", "linear r^2", "volume: Pearson r"],
+            lambda e, m: [
+                f"{fits[e.slug][m]['exp2_r2']:.2f}" if e.slug in fits else "-",
+                f"{fits[e.slug][m]['linear_r2']:.2f}" if e.slug in fits else "-",
+                f"{numbers['volume_pearson_r'][e.slug][m]:.2f}",
+            ],
+        ),
+        "## Time per breast (paper Table 6): FE solve against prediction, median, s\n\n"
+        "FE: the solver's wall time recorded in each trajectory. Prediction: cached features "
+        "to the node positions of every step, as timed when the predictions were saved.",
+        _table(
+            evaluations,
+            ["FE (s)", "prediction (s)", "speed-up"],
+            lambda e, m: _timing(numbers["timing"][e.slug], s[e.slug][m]),
+        ),
+    ]
+    return "\n\n".join(sections)
+
+
+def compute(evaluations: list[Evaluation], cfg: DictConfig) -> dict:
+    """Every number of the report (the content of ``report.json``)."""
+    numbers: dict = {"summary": {}, "compression_ratio": {}, "volume_pearson_r": {}}
+    numbers["timing"] = {}
+    for e in evaluations:
+        numbers["summary"][e.slug] = {
+            m: model_summary(r, e.truth, cfg.ratio_of_interest) for m, r in e.models.items()
+        }
+        numbers["volume_pearson_r"][e.slug] = {
+            m: volume_correlation(r, e.truth) for m, r in e.models.items()
+        }
+        numbers["timing"][e.slug] = float(np.nanmedian([t.fe_seconds for t in e.truth.values()]))
+        if e.step == "compression":
+            numbers["compression_ratio"][e.slug] = {
+                m: ratio_fits(*ratio_curve(r, e.truth, cfg.ratio_bin)[:2], cfg.linear_fit_max_ratio)
+                for m, r in e.models.items()
+            }
+    return numbers
+
+
+def write_csv(path: Path, header: Sequence[str], rows: Iterable[Sequence]) -> None:
+    with atomic_path(path) as tmp, open(tmp, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(header)
+        w.writerows(rows)
+
+
+def write_report(cfg: DictConfig) -> Path:
+    """Compute, tabulate and draw everything for ``cfg.runs`` into ``cfg.out_dir``."""
+    from mammo_net import report_figures as figures
+
+    evaluations = collect(cfg.runs, cfg.get("data_dir"))
+    out = Path(cfg.out_dir)
+    numbers = compute(evaluations, cfg)
+    breast_rows, step_rows = [], []
+    for e in evaluations:
+        for m, r in e.models.items():
+            for name, b in breast_errors(r, e.truth).items():
+                t = e.truth[name]
+                ratio = t.compression_ratio[-1] if t.compression_ratio is not None else ""
+                breast_rows.append(
+                    (e.split, e.step, m, name, f"{b['all_steps']:.4f}", f"{b['last_step']:.4f}",
+                     f"{b['surface_all_steps']:.4f}", f"{b['surface_last_step']:.4f}",
+                     f"{t.volume_cm3:.1f}", ratio and f"{ratio:.4f}", f"{t.fe_seconds:.2f}",
+                     f"{r.seconds.get(name, float('nan')):.5f}")
+                )  # fmt: skip
+            per_step = np.stack([err.mean(0) for err in r.errors.values()])  # (breasts, T)
+            for k, col in enumerate(per_step.T):
+                step_rows.append((e.split, e.step, m, k + 1, f"{col.mean():.4f}",
+                                  f"{np.median(col):.4f}", f"{np.percentile(col, 95):.4f}"))  # fmt: skip
+    figures.draw_all(evaluations, numbers, cfg, out / "figures")
+    write_csv(
+        out / "per_breast.csv",
+        ["split", "step", "model", "breast", "rmse_all_steps_mm", "rmse_last_step_mm",
+         "skin_all_steps_mm", "skin_last_step_mm", "volume_cm3", "final_compression_ratio",
+         "fe_seconds", "predict_seconds"],
+        breast_rows,
+    )  # fmt: skip
+    write_csv(
+        out / "per_step.csv",
+        ["split", "step", "model", "recorded_step", "mean_mm", "median_mm", "p95_mm"],
+        step_rows,
+    )
+    with atomic_path(out / "report.json") as tmp:
+        tmp.write_text(json.dumps(numbers, indent=1, default=float))
+    text = markdown(evaluations, numbers, cfg)
+    with atomic_path(out / "report.md") as tmp:
+        tmp.write_text(text)
+    print(text)
+    return out
+
+
+@hydra.main(config_path="../conf", config_name="report", version_base="1.3")
+def main(cfg: DictConfig) -> None:
+    write_report(cfg)
+
+
+if __name__ == "__main__":
+    main()
