@@ -50,7 +50,8 @@ def train(cfg: DictConfig) -> float:
     dm.setup()
     model = instantiate(cfg.model)
     model.set_feature_normalization(*dm.feature_statistics())
-    callbacks = [instantiate(c) for c in cfg.callbacks.values()]
+    # entries without _target_: a paper experiment's parameters of a callback left out
+    callbacks = [instantiate(c) for c in cfg.callbacks.values() if c and "_target_" in c]
     baselines = [c for c in callbacks if isinstance(c, TreeBaseline)]
     logger = instantiate(cfg.logger) if cfg.get("logger") else False
     trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=logger)

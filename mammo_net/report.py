@@ -271,10 +271,13 @@ def _tissue(s: dict, tissue: str) -> str:
 
 
 def _timing(fe: float, s: dict) -> list[str]:
-    t = s.get("predict_seconds_median")
-    if t is None:
-        return [f"{fe:.1f}", "-", "-"]
-    return [f"{fe:.1f}", f"{t:.4f}", f"{fe / t:,.0f}x"]
+    t = s.get("predict_seconds_median", float("nan"))
+    speed_up = f"{fe / t:,.0f}x" if np.isfinite(fe / t) else "-"
+    return [
+        f"{fe:.1f}" if np.isfinite(fe) else "-",
+        f"{t:.4f}" if np.isfinite(t) else "-",
+        speed_up,
+    ]
 
 
 def _table(
@@ -366,7 +369,10 @@ def compute(evaluations: list[Evaluation], cfg: DictConfig) -> dict:
         numbers["volume_pearson_r"][e.slug] = {
             m: volume_correlation(r, e.truth) for m, r in e.models.items()
         }
-        numbers["timing"][e.slug] = float(np.nanmedian([t.fe_seconds for t in e.truth.values()]))
+        fe = np.array([t.fe_seconds for t in e.truth.values()])
+        numbers["timing"][e.slug] = (
+            float(np.median(fe[np.isfinite(fe)])) if np.isfinite(fe).any() else float("nan")
+        )
         if e.step == "compression":
             numbers["compression_ratio"][e.slug] = {
                 m: ratio_fits(*ratio_curve(r, e.truth, cfg.ratio_bin)[:2], cfg.linear_fit_max_ratio)

@@ -7,7 +7,7 @@ import torch
 
 from datamodules.trajectories import TrajectoryDataModule
 from mammo_net.models import AttBLSTM
-from mammo_net.module import SurrogateModule
+from mammo_net.module import SurrogateModule, warmup_cosine
 
 
 @pytest.mark.parametrize("activations", [("tanh", "relu"), ("sigmoid", "sigmoid")])
@@ -52,3 +52,21 @@ def test_fit_log_and_reload(trajectory_folder, tmp_path):
     model.eval(), again.eval()
     with torch.no_grad():
         torch.testing.assert_close(again(x), model(x), rtol=0, atol=0)
+
+
+def test_cosine_schedule_warms_up_and_decays_to_zero(trajectory_folder, tmp_path):
+    assert warmup_cosine(0, 1000) == pytest.approx(0.1)  # warm-up over 10 steps
+    assert warmup_cosine(9, 1000) == pytest.approx(1.0)
+    assert warmup_cosine(10 + 495, 1000) == pytest.approx(0.5)
+    assert warmup_cosine(1000, 1000) == pytest.approx(0.0)
+    dm = TrajectoryDataModule(str(trajectory_folder), step="unloaded", batch_size=16)
+    model = SurrogateModule(11, hidden=4, layers=1, lr=0.01, lr_schedule="cosine")
+    trainer = L.Trainer(
+        max_epochs=2, accelerator="cpu", logger=False, enable_progress_bar=False,
+        enable_checkpointing=False, default_root_dir=tmp_path,
+    )  # fmt: skip
+    trainer.fit(model, dm)
+    lr = trainer.optimizers[0].param_groups[0]["lr"]
+    assert lr < 0.01 * 0.01  # the last step's factor, near zero
+    with pytest.raises(ValueError, match="lr_schedule must be"):
+        SurrogateModule(11, lr_schedule="linear")

@@ -1,5 +1,6 @@
 """train.py end to end on tiny trajectories, and every experiment config instantiated."""
 
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -16,6 +17,7 @@ from fem.trajectory import Trajectory
 from mammo_net.inference import load_predictions
 from mammo_net.metrics import breast_rmse, comparison
 from mammo_net.module import SurrogateModule
+from mammo_net.report import write_report
 
 ROOT = Path(__file__).resolve().parents[1]
 CONF = str(ROOT / "conf")
@@ -77,6 +79,25 @@ def test_experiment_configs_instantiate(experiment, tmp_path):
     assert set(callbacks) == {"model_checkpoint", "xgboost", "ert"}
     assert instantiate(cfg.trainer, logger=False).max_epochs == 30
     assert cfg.cohort.n_patients == 258
+
+
+@pytest.mark.parametrize("step", ["compression", "unloaded"])
+@pytest.mark.parametrize("cv", ["cv_xgboost", "cv_att_blstm"])
+def test_cross_validation_configs_instantiate(step, cv, tmp_path):
+    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
+        cfg = compose(
+            "train",
+            overrides=[f"experiment=[paper_{step},{cv}]", f"run_dir={tmp_path}", "data.fold=4"],
+            return_hydra_config=True,
+        )
+    assert cfg.hydra.sweeper.params["data.fold"].startswith("range(0, 10)")
+    assert cfg.hydra.sweep.dir == f"outputs/cv/{cv[3:]}/{step}"
+    callbacks = [instantiate(c) for c in cfg.callbacks.values() if c and "_target_" in c]
+    assert len(callbacks) == 1
+    dm, model = instantiate(cfg.data), instantiate(cfg.model)
+    assert dm.hparams.step == step and dm.hparams.fold == 4
+    assert model.hparams.n_features == (22 if step == "compression" else 11)
+    assert cfg.trainer.max_epochs == (0 if cv == "cv_xgboost" else 1)
 
 
 @pytest.mark.parametrize(
@@ -173,3 +194,32 @@ def test_two_process_cpu_ddp(trajectory_folder, tmp_path):
     single = trainer.test(model, dm, verbose=False)[0]
     expected = comparison(single, "test").splitlines()[2]
     assert expected in logged.splitlines()
+
+
+def test_cross_validation_sweeps_feed_the_report(trajectory_folder, tmp_path):
+    """Two folds of each model's cross-validation, then one report over both models."""
+    for cv in ("cv_xgboost", "cv_att_blstm"):
+        _run_train(
+            tmp_path,
+            trajectory_folder,
+            f"experiment=[paper_compression,{cv}]",
+            "data.fold=0,1",
+            "callbacks.xgboost.n_estimators=3",
+            multirun=True,
+        )
+    folds = sorted(p.relative_to(tmp_path) for p in tmp_path.glob("outputs/cv/*/*/fold*"))
+    assert [str(p) for p in folds] == [
+        "outputs/cv/att_blstm/compression/fold0",
+        "outputs/cv/att_blstm/compression/fold1",
+        "outputs/cv/xgboost/compression/fold0",
+        "outputs/cv/xgboost/compression/fold1",
+    ]
+    cfg = OmegaConf.load(CONF + "/report.yaml")
+    cfg.runs = [str(tmp_path / "outputs/cv/*/*/fold*")]
+    cfg.out_dir = str(tmp_path / "report")
+    cfg.pop("hydra")
+    numbers = write_report(cfg)
+    summary = json.loads((numbers / "report.json").read_text())["summary"]
+    # 24 breasts, 10 folds: folds 0 and 1 validate 2 patients (4 breasts) each -> 8 breasts.
+    for model in ("att_blstm", "xgboost"):
+        assert summary["10_fold_CV_compression"][model]["n_breasts"] == 8
