@@ -23,6 +23,16 @@ def colour(model: str, index: int) -> str:
     return COLOURS.get(model, f"C{index + 3}")
 
 
+def finish(fig, ax, xlabel: str, ylabel: str, title: str, path: Path, fontsize: int = 8) -> Path:
+    """Label a one-panel figure, add its grid and legend, and save it."""
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=fontsize)
+    return save_png(fig, path)
+
+
 def error_classes_png(evaluations: Sequence[Evaluation], step: str, path: Path) -> Path:
     """Percentage of nodes per 2 mm error class, all steps and last step, every split and
     model of ``step`` side by side (paper Fig. 4, 11, 22, 23)."""
@@ -68,12 +78,16 @@ def compression_ratio_png(e: Evaluation, numbers: dict, cfg: DictConfig, path: P
             ax.plot(100 * line, np.polyval(f["linear"], line), "--", color=c,
                     label=f"{m}: linear fit to {cfg.linear_fit_max_ratio:.0%}, "
                     f"r$^2$ = {f['linear_r2']:.2f}")  # fmt: skip
-    ax.set_xlabel("compression ratio (%), 1 % bins")
-    ax.set_ylabel("mean breast RMSE at the step (mm)")
-    ax.set_title(f"RMSE against compression ratio: {e.label}, {len(e.truth)} breasts")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=7)
-    return save_png(fig, path)
+    title = f"RMSE against compression ratio: {e.label}, {len(e.truth)} breasts"
+    return finish(
+        fig,
+        ax,
+        "compression ratio (%), 1 % bins",
+        "mean breast RMSE at the step (mm)",
+        title,
+        path,
+        7,
+    )
 
 
 def tissue_png(e: Evaluation, numbers: dict, path: Path) -> Path:
@@ -118,12 +132,8 @@ def volume_png(e: Evaluation, numbers: dict, path: Path) -> Path:
         if len(volume) > 1 and volume.std() > 0:
             p = np.polyfit(volume, rmse, 1)
             ax.plot(np.sort(volume), np.polyval(p, np.sort(volume)), "-", color=c)
-    ax.set_xlabel("breast volume (cm$^3$)")
-    ax.set_ylabel("breast RMSE over all steps (mm)")
-    ax.set_title(f"RMSE against breast volume: {e.label}")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
-    return save_png(fig, path)
+    title = f"RMSE against breast volume: {e.label}"
+    return finish(fig, ax, "breast volume (cm$^3$)", "breast RMSE over all steps (mm)", title, path)
 
 
 def per_step_png(e: Evaluation, path: Path) -> Path:
@@ -135,12 +145,8 @@ def per_step_png(e: Evaluation, path: Path) -> Path:
         ax.plot(t, per.mean(0), color=colour(m, i), label=f"{m}: mean")
         ax.fill_between(t, *np.percentile(per, [5, 95], axis=0), color=colour(m, i), alpha=0.15,
                         label=f"{m}: 5-95 % of breasts")  # fmt: skip
-    ax.set_xlabel("recorded step")
-    ax.set_ylabel("breast RMSE at the step (mm)")
-    ax.set_title(f"Error per recorded step: {e.label}, {len(e.truth)} breasts")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
-    return save_png(fig, path)
+    title = f"Error per recorded step: {e.label}, {len(e.truth)} breasts"
+    return finish(fig, ax, "recorded step", "breast RMSE at the step (mm)", title, path)
 
 
 def sections_png(e: Evaluation, name: str, which: str, path: Path) -> Path:
