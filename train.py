@@ -4,8 +4,9 @@
     python train.py experiment=paper_compression      # the paper's run on the 516-breast cohort
     python train.py -m experiment=paper_compression data.fold=0,1,2,3,4,5,6,7,8,9
 
-Writes TensorBoard logs, checkpoints, the baselines' model files and ``results.md`` (the
-side-by-side table) into the run folder, and prints the table.
+Writes TensorBoard logs, checkpoints, the baselines' model files, the validation breasts'
+predictions, ``results.md`` (the side-by-side table, also printed) and the evaluation report
+(``report/``, `mammo_net.report`) into the run folder.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from fem.cohort import run_cohort
 from mammo_net.callbacks import TreeBaseline
 from mammo_net.inference import network_predictor, rows_predictor, save_predictions
 from mammo_net.metrics import comparison
+from mammo_net.report import write_report
 
 
 def ensure_cohort(cfg: DictConfig) -> str:
@@ -84,6 +86,10 @@ def train(cfg: DictConfig) -> float:
         with atomic_path(Path(cfg.run_dir) / "results.md") as tmp:
             tmp.write_text(table)
         print(table)
+        if cfg.report:  # tables and figures of this run: python -m mammo_net.report on it
+            print(
+                "report:", write_report([cfg.run_dir], Path(cfg.run_dir) / "report", cfg.analysis)
+            )
     return score
 
 

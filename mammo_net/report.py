@@ -293,9 +293,9 @@ def _table(
     return "\n".join(lines) + "\n"
 
 
-def markdown(evaluations: list[Evaluation], numbers: dict, cfg: DictConfig) -> str:
+def markdown(evaluations: list[Evaluation], numbers: dict, analysis: DictConfig) -> str:
     """Every table of the report, in markdown."""
-    s, fits, r = numbers["summary"], numbers["compression_ratio"], cfg.ratio_of_interest
+    s, fits, r = numbers["summary"], numbers["compression_ratio"], analysis.ratio_of_interest
     sections = [
         "# Evaluation report\n\nPer-breast RMSE (equation 2) of every model against the FE, mm.",
         "## Per-breast RMSE (paper Tables 3, 4, 7): (mean, median) +- std, mm",
@@ -335,7 +335,7 @@ def markdown(evaluations: list[Evaluation], numbers: dict, cfg: DictConfig) -> s
         ),
         "## Compression ratio and breast volume (paper Fig. 12, 13, 15)\n\n"
         "r^2 of the fits of the mean RMSE per 1 % compression-ratio bin (exp2: a exp(bx) + "
-        f"c exp(dx); line: bins up to {cfg.linear_fit_max_ratio:.0%}); Pearson r between "
+        f"c exp(dx); line: bins up to {analysis.linear_fit_max_ratio:.0%}); Pearson r between "
         "breast volume and all-steps RMSE.",
         _table(
             evaluations,
@@ -358,13 +358,13 @@ def markdown(evaluations: list[Evaluation], numbers: dict, cfg: DictConfig) -> s
     return "\n\n".join(sections)
 
 
-def compute(evaluations: list[Evaluation], cfg: DictConfig) -> dict:
+def compute(evaluations: list[Evaluation], analysis: DictConfig) -> dict:
     """Every number of the report (the content of ``report.json``)."""
     numbers: dict = {"summary": {}, "compression_ratio": {}, "volume_pearson_r": {}}
     numbers["timing"] = {}
     for e in evaluations:
         numbers["summary"][e.slug] = {
-            m: model_summary(r, e.truth, cfg.ratio_of_interest) for m, r in e.models.items()
+            m: model_summary(r, e.truth, analysis.ratio_of_interest) for m, r in e.models.items()
         }
         numbers["volume_pearson_r"][e.slug] = {
             m: volume_correlation(r, e.truth) for m, r in e.models.items()
@@ -375,7 +375,9 @@ def compute(evaluations: list[Evaluation], cfg: DictConfig) -> dict:
         )
         if e.step == "compression":
             numbers["compression_ratio"][e.slug] = {
-                m: ratio_fits(*ratio_curve(r, e.truth, cfg.ratio_bin)[:2], cfg.linear_fit_max_ratio)
+                m: ratio_fits(
+                    *ratio_curve(r, e.truth, analysis.ratio_bin)[:2], analysis.linear_fit_max_ratio
+                )
                 for m, r in e.models.items()
             }
     return numbers
@@ -388,13 +390,19 @@ def write_csv(path: Path, header: Sequence[str], rows: Iterable[Sequence]) -> No
         w.writerows(rows)
 
 
-def write_report(cfg: DictConfig) -> Path:
-    """Compute, tabulate and draw everything for ``cfg.runs`` into ``cfg.out_dir``."""
+def write_report(
+    runs: Iterable[str | Path],
+    out_dir: str | Path,
+    analysis: DictConfig,
+    data_dir: str | Path | None = None,
+) -> Path:
+    """Compute, tabulate and draw everything for the run folders ``runs`` into ``out_dir``,
+    with the settings ``analysis`` (``conf/analysis``); returns ``out_dir``."""
     from mammo_net import report_figures as figures
 
-    evaluations = collect(cfg.runs, cfg.get("data_dir"))
-    out = Path(cfg.out_dir)
-    numbers = compute(evaluations, cfg)
+    evaluations = collect(runs, data_dir)
+    out = Path(out_dir)
+    numbers = compute(evaluations, analysis)
     breast_rows, step_rows = [], []
     for e in evaluations:
         for m, r in e.models.items():
@@ -411,7 +419,7 @@ def write_report(cfg: DictConfig) -> Path:
             for k, col in enumerate(per_step.T):
                 step_rows.append((e.split, e.step, m, k + 1, f"{col.mean():.4f}",
                                   f"{np.median(col):.4f}", f"{np.percentile(col, 95):.4f}"))  # fmt: skip
-    figures.draw_all(evaluations, numbers, cfg, out / "figures")
+    figures.draw_all(evaluations, numbers, analysis, out / "figures")
     write_csv(
         out / "per_breast.csv",
         ["split", "step", "model", "breast", "rmse_all_steps_mm", "rmse_last_step_mm",
@@ -426,16 +434,16 @@ def write_report(cfg: DictConfig) -> Path:
     )
     with atomic_path(out / "report.json") as tmp:
         tmp.write_text(json.dumps(numbers, indent=1, default=float))
-    text = markdown(evaluations, numbers, cfg)
+    text = markdown(evaluations, numbers, analysis)
     with atomic_path(out / "report.md") as tmp:
         tmp.write_text(text)
-    print(text)
     return out
 
 
 @hydra.main(config_path="../conf", config_name="report", version_base="1.3")
 def main(cfg: DictConfig) -> None:
-    write_report(cfg)
+    out = write_report(cfg.runs, cfg.out_dir, cfg.analysis, cfg.data_dir)
+    print((out / "report.md").read_text())
 
 
 if __name__ == "__main__":

@@ -60,13 +60,13 @@ def error_classes_png(evaluations: Sequence[Evaluation], step: str, path: Path) 
     return save_png(fig, path)
 
 
-def compression_ratio_png(e: Evaluation, numbers: dict, cfg: DictConfig, path: Path) -> Path:
+def compression_ratio_png(e: Evaluation, numbers: dict, analysis: DictConfig, path: Path) -> Path:
     """Mean RMSE per 1 % compression-ratio bin, its exp2 fit and the line up to 53 %
     (paper Fig. 12, 13)."""
     fits = numbers["compression_ratio"][e.slug]
     fig, ax = plt.subplots(figsize=(8, 5.5))
     for i, (m, r) in enumerate(e.models.items()):
-        centres, means, _ = ratio_curve(r, e.truth, cfg.ratio_bin)
+        centres, means, _ = ratio_curve(r, e.truth, analysis.ratio_bin)
         f, c = fits[m], colour(m, i)
         ax.plot(100 * centres, means, "o", ms=3.5, color=c, label=f"{m}: bin means")
         grid = np.linspace(centres.min(), centres.max(), 200)
@@ -74,9 +74,9 @@ def compression_ratio_png(e: Evaluation, numbers: dict, cfg: DictConfig, path: P
             ax.plot(100 * grid, ev.exp2(grid, *f["exp2"]), "-", color=c,
                     label=f"{m}: exp2 fit, r$^2$ = {f['exp2_r2']:.2f}")  # fmt: skip
         if np.isfinite(f["linear_r2"]):
-            line = grid[grid <= cfg.linear_fit_max_ratio]
+            line = grid[grid <= analysis.linear_fit_max_ratio]
             ax.plot(100 * line, np.polyval(f["linear"], line), "--", color=c,
-                    label=f"{m}: linear fit to {cfg.linear_fit_max_ratio:.0%}, "
+                    label=f"{m}: linear fit to {analysis.linear_fit_max_ratio:.0%}, "
                     f"r$^2$ = {f['linear_r2']:.2f}")  # fmt: skip
     title = f"RMSE against compression ratio: {e.label}, {len(e.truth)} breasts"
     return finish(
@@ -182,7 +182,7 @@ def sections_png(e: Evaluation, name: str, which: str, path: Path) -> Path:
 
 
 def draw_all(
-    evaluations: Sequence[Evaluation], numbers: dict, cfg: DictConfig, folder: Path
+    evaluations: Sequence[Evaluation], numbers: dict, analysis: DictConfig, folder: Path
 ) -> list[Path]:
     """Every figure of the report into ``folder``."""
     out = [error_classes_png(evaluations, s, folder / f"error_classes_{s}.png")
@@ -193,9 +193,11 @@ def draw_all(
         out.append(per_step_png(e, folder / f"{e.slug}_per_step.png"))
         if e.slug in numbers["compression_ratio"]:
             out.append(
-                compression_ratio_png(e, numbers, cfg, folder / f"{e.slug}_compression_ratio.png")
+                compression_ratio_png(
+                    e, numbers, analysis, folder / f"{e.slug}_compression_ratio.png"
+                )
             )
-        if cfg.sections:
+        if analysis.sections:
             ranked = ranked_breasts(e)
             for which, name in (("best", ranked[0]), ("worst", ranked[-1])):
                 out.append(sections_png(e, name, which, folder / f"{e.slug}_sections_{which}.png"))

@@ -11,6 +11,8 @@ from omegaconf import OmegaConf
 from mammo_net import evaluation as ev
 from mammo_net.report import collect, write_report
 
+CONF = Path(__file__).resolve().parents[1] / "conf"
+
 # Three compressed breasts (5 nodes, 3 recorded steps at compression ratios 0.1, 0.2, 0.3;
 # node 3 is fat and skin, node 4 muscle, nodes 0-2 interfaces; node 0 is skin too). Each is
 # predicted with an offset (d, d, d) per node and step, whose node RMSE is d:
@@ -67,12 +69,9 @@ def cohort(tmp_path):
     return runs
 
 
-def _report(runs: Path, out: Path, **extra):
-    cfg = OmegaConf.create(
-        {"runs": [str(runs / "*")], "data_dir": None, "out_dir": str(out), "ratio_bin": 0.01,
-         "linear_fit_max_ratio": 0.53, "ratio_of_interest": 0.2, "sections": True} | extra
-    )  # fmt: skip
-    write_report(cfg)
+def _report(runs: Path, out: Path):
+    analysis = OmegaConf.load(CONF / "analysis" / "default.yaml")
+    write_report([runs / "*"], out, analysis)
     return json.loads((out / "report.json").read_text())
 
 

@@ -42,6 +42,7 @@ def test_train_prints_the_comparison(trajectory_folder, tmp_path, capsys):
         "callbacks.ert.n_estimators=3",
         "callbacks.ert.max_samples=null",
         "callbacks.ert.max_depth=null",
+        "report=false",  # needs the .hydra folder of a command-line run (the tests below)
     )
     score = train.train(cfg)
     assert score > 0
@@ -185,6 +186,9 @@ def test_two_process_cpu_ddp(trajectory_folder, tmp_path):
         f"hydra.run.dir={run}",
     )
     logged = (run / "results.md").read_text()
+    report = (run / "report" / "report.md").read_text()  # the run's own evaluation report
+    assert "| one-fold | compression | att_blstm | 6 | (" in report
+    assert (run / "report" / "figures" / "one_fold_compression_sections_worst.png").exists()
     model = SurrogateModule.load_from_checkpoint(
         next((run / "checkpoints").glob("epoch*.ckpt")), weights_only=True
     )
@@ -214,12 +218,9 @@ def test_cross_validation_sweeps_feed_the_report(trajectory_folder, tmp_path):
         "outputs/cv/xgboost/compression/fold0",
         "outputs/cv/xgboost/compression/fold1",
     ]
-    cfg = OmegaConf.load(CONF + "/report.yaml")
-    cfg.runs = [str(tmp_path / "outputs/cv/*/*/fold*")]
-    cfg.out_dir = str(tmp_path / "report")
-    cfg.pop("hydra")
-    numbers = write_report(cfg)
-    summary = json.loads((numbers / "report.json").read_text())["summary"]
+    analysis = OmegaConf.load(CONF + "/analysis/default.yaml")
+    out = write_report([tmp_path / "outputs/cv/*/*/fold*"], tmp_path / "report", analysis)
+    summary = json.loads((out / "report.json").read_text())["summary"]
     # 24 breasts, 10 folds: folds 0 and 1 validate 2 patients (4 breasts) each -> 8 breasts.
     for model in ("att_blstm", "xgboost"):
         assert summary["10_fold_CV_compression"][model]["n_breasts"] == 8
