@@ -217,6 +217,58 @@ class CompressionResult:
     compression_ratio: NDArray
 
 
+@dataclass(frozen=True)
+class PlateSchedule:
+    """Where the rigid plates of the compression step are.
+
+    The lower plate sits at ``bottom``, the lowest skin node of the unloaded shape (the
+    inframammary fold); the upper plate starts at ``top``, the highest skin node (first
+    contact), and moves down to ``bottom + thickness`` at load factor 1. Both plates reach
+    back to ``edge``, the y of their chest-side edge. Millimetres.
+    """
+
+    bottom: float
+    top: float
+    thickness: float
+    edge: float
+
+    def height(self, s: NDArray | float) -> NDArray | float:
+        """Upper plate z at load factor ``s`` in [0, 1]."""
+        return self.top - (self.top - self.bottom - self.thickness) * s
+
+    def recorded(self, n_steps: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Plate edges (T, 2, 2) as (y, z) of the lower and upper plate, and the compression
+        ratio (T,), at the ``n_steps`` equally spaced recorded load factors ``k / n_steps``."""
+        heights = self.height(np.arange(1, n_steps + 1) / n_steps)
+        plates = np.zeros((n_steps, 2, 2))
+        plates[:, :, 0] = self.edge
+        plates[:, 0, 1] = self.bottom
+        plates[:, 1, 1] = heights
+        return plates, 1.0 - (heights - self.bottom) / (self.top - self.bottom)
+
+
+def plate_schedule(
+    traj: Trajectory, start: NDArray, compressed_thickness: float, fixed: NDArray | None = None
+) -> PlateSchedule:
+    """The plates that compress the unloaded shape ``start`` (N, 3) of ``traj``'s mesh to
+    ``compressed_thickness`` (mm). Their chest-side edge is at the most posterior
+    muscle-interface node, or, with clamped nodes ``fixed``, at the most anterior of those.
+
+    Raises
+    ------
+    ValueError
+        The thickness is not positive or not below the breast's cranio-caudal extent.
+    """
+    skin_z = start[traj.flagged(NodeFlag.SKIN), 2]
+    bottom, top = float(skin_z.min()), float(skin_z.max())
+    _check_thickness(compressed_thickness, top - bottom, str(traj.metadata.get("source", "mesh")))
+    if fixed is None:  # the plates reach back to the (sliding) chest wall
+        edge = float(start[traj.flagged(NodeFlag.MUSCLE_INTERFACE), AP_AXIS].min())
+    else:  # ... or stop in front of the clamped nodes, which they could only crush
+        edge = float(start[np.asarray(fixed), AP_AXIS].max())
+    return PlateSchedule(bottom, top, float(compressed_thickness), edge)
+
+
 def compression(
     traj: Trajectory,
     start: NDArray,
@@ -241,45 +293,30 @@ def compression(
     (the plate edges are then at the most anterior clamped node).
     """
     source = str(traj.metadata.get("source", "mesh"))
+    schedule = plate_schedule(traj, start, compressed_thickness, fixed)
     moved = replace(traj, points=np.asarray(start, float))
     model = breast_model(moved, materials, averaging)
     skin_nodes = traj.flagged(NodeFlag.SKIN)
-    bottom, top = float(start[skin_nodes, 2].min()), float(start[skin_nodes, 2].max())
-    _check_thickness(compressed_thickness, top - bottom, source)
     free = boundary_free_dofs(moved, source, fixed, translations=(0,))
-    if fixed is None:  # the plates reach back to the (sliding) chest wall
-        edge = float(start[traj.flagged(NodeFlag.MUSCLE_INTERFACE), AP_AXIS].min())
-    else:  # ... or stop in front of the clamped nodes, which they could only crush
-        edge = float(start[np.asarray(fixed), AP_AXIS].max())
-    n = len(start)
+    n, edge = len(start), schedule.edge
     # Both plates touch from the start (the lowest and the highest skin node): they hold the
     # breast vertically, so the chest-wall pins fix x only and carry no plate or gravity load.
-    lower = RigidPlate(skin_nodes, bottom, +1, edge, n, friction)
-    upper = RigidPlate(skin_nodes, top, -1, edge, n, friction)
+    lower = RigidPlate(skin_nodes, schedule.bottom, +1, edge, n, friction)
+    upper = RigidPlate(skin_nodes, schedule.top, -1, edge, n, friction)
     model = Model(model.body, (*model.parts, lower, upper))
     # The standing patient's gravity rises with the plate travel (it is fully on at the target).
     f = nodal_body_force(
         model.body, np.array([0.0, 0.0, -GRAVITY_FORCE_DENSITY if gravity else 0.0])
     )
-    target = bottom + compressed_thickness
     record = np.arange(1, n_steps + 1) / n_steps
 
-    def plate_height(s: NDArray | float) -> NDArray | float:
-        return top - (top - target) * s
-
-    heights = plate_height(record)
-
     def move(s: float) -> None:
-        upper.height = plate_height(s)
+        upper.height = schedule.height(s)
 
     positions = load_ramp(
         model, start, free.ravel(), lambda s: s * f, record, settings, configure=move
     )
-    plates = np.zeros((n_steps, 2, 2))
-    plates[:, :, 0] = edge
-    plates[:, 0, 1] = bottom
-    plates[:, 1, 1] = heights
-    return CompressionResult(positions, plates, 1.0 - (heights - bottom) / (top - bottom))
+    return CompressionResult(positions, *schedule.recorded(n_steps))
 
 
 def _check_thickness(thickness: float, extent: float, source: str) -> None:
