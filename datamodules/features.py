@@ -112,6 +112,20 @@ def _base_features(
     return out
 
 
+def unloaded_inputs(traj: Trajectory, n_steps: int) -> tuple[NDArray[np.float32], Normalization]:
+    """Unloaded-state features of a breast mesh, simulated or not.
+
+    Returns
+    -------
+    features : (n_steps, N, 11) float32
+        `UNLOADED_FEATURES` per recorded step and node.
+    normalization : Normalization
+        Of the imaged geometry; it maps the model's outputs back to millimetres.
+    """
+    norm = Normalization.of(traj.points)
+    return _base_features(traj.points, n_steps, tissue_descriptors(traj), norm), norm
+
+
 def unloaded_features(
     traj: Trajectory,
 ) -> tuple[NDArray[np.float32], NDArray[np.float32], Normalization]:
@@ -126,9 +140,79 @@ def unloaded_features(
     normalization : Normalization
         Of the imaged geometry; ``normalization.invert(targets)`` gives millimetres.
     """
-    norm = Normalization.of(traj.points)
-    features = _base_features(traj.points, len(traj.unloaded), tissue_descriptors(traj), norm)
+    features, norm = unloaded_inputs(traj, len(traj.unloaded))
     return features, norm.apply(traj.unloaded).astype(np.float32), norm
+
+
+def compression_inputs(
+    traj: Trajectory, unloaded: NDArray, plates: NDArray, compression_ratio: NDArray
+) -> tuple[NDArray[np.float32], Normalization]:
+    """Compression features of a breast mesh from its unloaded shape and the plates' schedule
+    (simulated, or predicted and placed by `fem.simulate.plate_schedule`).
+
+    Parameters
+    ----------
+    traj : Trajectory
+        The mesh: cells, tissues, node flags and ``metadata["laterality"]``.
+    unloaded : (N, 3)
+        The unloaded shape, the compression's input geometry, mm.
+    plates : (T, 2, 2)
+        (y, z) of the lower and upper plate's chest-side edge per recorded step, mm.
+    compression_ratio : (T,)
+        Compression ratio per recorded step.
+
+    Returns
+    -------
+    features : (T, N, 22) float32
+        `COMPRESSION_FEATURES` per recorded step and node.
+    normalization : Normalization
+        Of the unloaded shape.
+
+    Raises
+    ------
+    ValueError
+        The metadata has no laterality.
+    """
+    source = str(traj.metadata.get("source", "trajectory"))
+    laterality = traj.metadata.get("laterality")
+    if laterality not in LATERALITY:
+        raise ValueError(
+            f"{source}: metadata field 'laterality' must be 'L' or 'R', got {laterality!r}"
+        )
+    norm = Normalization.of(unloaded)
+    n_steps = len(plates)
+    base = _base_features(unloaded, n_steps, tissue_descriptors(traj), norm)
+    lower, upper = plates[:, 0, 1], plates[:, 1, 1]
+    first_contact = lower + (upper - lower) / (1.0 - compression_ratio)  # upper at CR 0
+    code = traj.node_tissue_code
+    per_step = np.stack(
+        [
+            (first_contact - upper) / norm.scale,  # 12: plate travel, normalised
+            *norm.apply(plates[:, 0], [1, 2]).T,  # 13-14: lower edge (y, z)
+            *norm.apply(plates[:, 1], [1, 2]).T,  # 15-16: upper edge (y, z)
+        ],
+        axis=1,
+    )  # (T, 5)
+    per_node = np.stack(
+        [
+            (traj.node_flags & NodeFlag.UPPER_CONTACT) > 0,  # 17
+            (traj.node_flags & NodeFlag.SKIN) > 0,  # 18
+            (code >> 2) & 1,  # 19: gland bit
+            (code >> 1) & 1,  # 20: fat bit
+            code & 1,  # 21: muscle bit
+            np.full(traj.n_nodes, LATERALITY[laterality]),  # 22
+        ],
+        axis=1,
+    ).astype(np.float32)  # (N, 6)
+    features = np.concatenate(
+        [
+            base,
+            np.broadcast_to(per_step[:, None, :], (n_steps, traj.n_nodes, 5)),
+            np.broadcast_to(per_node[None], (n_steps, traj.n_nodes, 6)),
+        ],
+        axis=2,
+    ).astype(np.float32)
+    return features, norm
 
 
 def compression_features(
@@ -153,43 +237,7 @@ def compression_features(
     source = str(traj.metadata.get("source", "trajectory"))
     if not len(traj.unloaded) or not len(traj.compressed):
         raise ValueError(f"{source}: not simulated (fields 'unloaded'/'compressed' are empty)")
-    laterality = traj.metadata.get("laterality")
-    if laterality not in LATERALITY:
-        raise ValueError(
-            f"{source}: metadata field 'laterality' must be 'L' or 'R', got {laterality!r}"
-        )
-    geometry = traj.unloaded[-1]
-    norm = Normalization.of(geometry)
-    n_steps = len(traj.compressed)
-    base = _base_features(geometry, n_steps, tissue_descriptors(traj), norm)
-    lower, upper = traj.plates[:, 0, 1], traj.plates[:, 1, 1]
-    first_contact = lower + (upper - lower) / (1.0 - traj.compression_ratio)  # upper at CR 0
-    code = traj.node_tissue_code
-    per_step = np.stack(
-        [
-            (first_contact - upper) / norm.scale,  # 12: plate travel, normalised
-            *norm.apply(traj.plates[:, 0], [1, 2]).T,  # 13-14: lower edge (y, z)
-            *norm.apply(traj.plates[:, 1], [1, 2]).T,  # 15-16: upper edge (y, z)
-        ],
-        axis=1,
-    )  # (T2, 5)
-    per_node = np.stack(
-        [
-            (traj.node_flags & NodeFlag.UPPER_CONTACT) > 0,  # 17
-            (traj.node_flags & NodeFlag.SKIN) > 0,  # 18
-            (code >> 2) & 1,  # 19: gland bit
-            (code >> 1) & 1,  # 20: fat bit
-            code & 1,  # 21: muscle bit
-            np.full(traj.n_nodes, LATERALITY[laterality]),  # 22
-        ],
-        axis=1,
-    ).astype(np.float32)  # (N, 6)
-    features = np.concatenate(
-        [
-            base,
-            np.broadcast_to(per_step[:, None, :], (n_steps, traj.n_nodes, 5)),
-            np.broadcast_to(per_node[None], (n_steps, traj.n_nodes, 6)),
-        ],
-        axis=2,
-    ).astype(np.float32)
+    features, norm = compression_inputs(
+        traj, traj.unloaded[-1], traj.plates, traj.compression_ratio
+    )
     return features, norm.apply(traj.compressed).astype(np.float32), norm
