@@ -51,7 +51,7 @@ def train(cfg: DictConfig) -> float:
     dm.prepare_data()
     dm.setup()
     model = instantiate(cfg.model)
-    model.set_feature_normalization(*dm.feature_statistics())
+    model.set_feature_normalization(*dm.feature_statistics(), dm.schema())
     # entries without _target_: a paper experiment's parameters of a callback left out
     callbacks = [instantiate(c) for c in cfg.callbacks.values() if c and "_target_" in c]
     baselines = [c for c in callbacks if isinstance(c, TreeBaseline)]

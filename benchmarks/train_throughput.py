@@ -50,7 +50,7 @@ def main() -> None:
     with initialize_config_dir(config_dir=CONF, version_base="1.3"):  # the paper's model
         cfg = compose("train", overrides=[f"experiment=paper_{args.step}"])
     model: SurrogateModule = instantiate(cfg.model, hidden=args.hidden)
-    model.set_feature_normalization(*dm.feature_statistics())
+    model.set_feature_normalization(*dm.feature_statistics(), dm.schema())
     model.to(args.device).train()
     optimizer = model.configure_optimizers()
     loader = dm.train_dataloader()

@@ -15,6 +15,7 @@ reference, so a predicted unloaded state can feed the compression model.
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 
 import numpy as np
@@ -58,6 +59,53 @@ COMPRESSION_FEATURES = (
 
 #: Value of feature 22 per laterality.
 LATERALITY = {"L": 0.0, "R": 1.0}
+
+#: The features of each simulation step's model.
+STEP_FEATURES = {"unloaded": UNLOADED_FEATURES, "compression": COMPRESSION_FEATURES}
+
+
+@dataclass(frozen=True)
+class FeatureSchema:
+    """What a trained model takes: its simulation step, its features in order and the number
+    of recorded steps it was trained on (the trees see the step index as feature 4). Every
+    model file stores it, so a model is never fed features it was not trained on."""
+
+    step: str
+    features: tuple[str, ...]
+    n_steps: int
+
+    @classmethod
+    def of(cls, step: str, n_steps: int) -> FeatureSchema:
+        """This code's schema of ``step`` with ``n_steps`` recorded steps."""
+        if step not in STEP_FEATURES:
+            raise ValueError(f"step must be one of {sorted(STEP_FEATURES)}, got {step!r}")
+        return cls(step, STEP_FEATURES[step], int(n_steps))
+
+    def to_json(self) -> str:
+        return json.dumps(
+            {"step": self.step, "features": list(self.features), "n_steps": self.n_steps}
+        )
+
+    @classmethod
+    def from_json(cls, text: str, source: str = "model") -> FeatureSchema:
+        try:
+            d = json.loads(text)
+            return cls(str(d["step"]), tuple(str(f) for f in d["features"]), int(d["n_steps"]))
+        except (ValueError, KeyError, TypeError) as exc:
+            raise ValueError(f"{source}: unreadable feature schema {text!r}: {exc}") from exc
+
+    def check(self, step: str, source: str = "model") -> None:
+        """Refuse a model trained for another step or on other features than this code's."""
+        if step != self.step:
+            raise ValueError(
+                f"{source}: the model predicts the {self.step} step, not the {step} step"
+            )
+        expected = STEP_FEATURES.get(step)
+        if self.features != expected:
+            raise ValueError(
+                f"{source}: the model was trained on the features {list(self.features)}, this "
+                f"version computes {list(expected or ())} for the {step} step; retrain it"
+            )
 
 
 @dataclass(frozen=True)

@@ -25,8 +25,8 @@ from numpy.typing import NDArray
 from torch.utils.data import DataLoader, Dataset
 
 from datamodules.features import (
-    COMPRESSION_FEATURES,
-    UNLOADED_FEATURES,
+    STEP_FEATURES,
+    FeatureSchema,
     Normalization,
     compression_features,
     unloaded_features,
@@ -36,7 +36,6 @@ from fem.atomic import atomic_path
 from fem.trajectory import Trajectory
 
 STEPS = {"unloaded": unloaded_features, "compression": compression_features}
-FEATURES = {"unloaded": UNLOADED_FEATURES, "compression": COMPRESSION_FEATURES}
 
 
 @dataclass(frozen=True)
@@ -163,7 +162,7 @@ class TrajectoryDataModule(L.LightningDataModule):
         self.save_hyperparameters()
         self.data_dir = Path(data_dir)
         self.cache = Path(cache_dir) if cache_dir else self.data_dir / "cache"
-        self.feature_names = FEATURES[step]
+        self.feature_names = STEP_FEATURES[step]
         self.train: list[Breast] = []
         self.val: list[Breast] = []
 
@@ -225,6 +224,15 @@ class TrajectoryDataModule(L.LightningDataModule):
 
     def test_dataloader(self) -> DataLoader:
         return self.val_dataloader()
+
+    def schema(self) -> FeatureSchema:
+        """The feature schema of models trained here (the longest trajectory's step count)."""
+        out = self.cache / self.hparams.step
+        n_steps = max(
+            json.loads((out / s.stem).with_suffix(".json").read_text())["n_steps"]
+            for s in self.sources()
+        )
+        return FeatureSchema.of(self.hparams.step, n_steps)
 
     def feature_statistics(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Mean and standard deviation (F,) of each feature over the training rows, streamed

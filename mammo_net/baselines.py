@@ -18,6 +18,7 @@ import xgboost as xgb
 from numpy.typing import NDArray
 from sklearn.ensemble import ExtraTreesRegressor
 
+from datamodules.features import FeatureSchema
 from fem.atomic import atomic_path
 
 
@@ -145,11 +146,15 @@ def forest_arrays(model: ExtraTreesRegressor) -> Forest:
     return Forest(left, right, feature, threshold, value, np.array(roots))
 
 
-def save_forest(forest: Forest, path: str | Path) -> Path:
-    """Write a `Forest` as a plain ``.npz`` (no pickle), atomically."""
+def save_forest(forest: Forest, path: str | Path, schema: FeatureSchema | None = None) -> Path:
+    """Write a `Forest` (and the feature ``schema`` it was trained on) as a plain ``.npz``
+    (no pickle), atomically."""
     path = Path(path)
+    arrays = {k: v for k, v in vars(forest).items() if isinstance(v, np.ndarray)}
+    if schema is not None:
+        arrays["feature_schema"] = np.array(schema.to_json())
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-        np.savez_compressed(fh, **vars(forest))
+        np.savez_compressed(fh, **arrays)
     return path
 
 
@@ -161,9 +166,22 @@ def load_forest(path: str | Path) -> Forest:
         )
 
 
-def save_xgboost(model: xgb.Booster, path: str | Path) -> Path:
-    """XGBoost's own JSON format, atomically."""
+def forest_schema(path: str | Path) -> FeatureSchema | None:
+    """The feature schema stored by `save_forest`, if any."""
+    with np.load(path, allow_pickle=False) as z:
+        return (
+            FeatureSchema.from_json(str(z["feature_schema"]), str(path))
+            if "feature_schema" in z
+            else None
+        )
+
+
+def save_xgboost(model: xgb.Booster, path: str | Path, schema: FeatureSchema | None = None) -> Path:
+    """XGBoost's own JSON (``.json``) or UBJSON (``.ubj``) format, with the feature ``schema``
+    as the booster attribute ``feature_schema``, atomically."""
     path = Path(path)
+    if schema is not None:
+        model.set_attr(feature_schema=schema.to_json())
     with atomic_path(path) as tmp:
         model.save_model(str(tmp))  # the format follows the suffix: .json or .ubj
     return path
@@ -173,3 +191,9 @@ def load_xgboost(path: str | Path) -> xgb.Booster:
     model = xgb.Booster()
     model.load_model(str(path))
     return model
+
+
+def xgboost_schema(model: xgb.Booster, source: str = "model") -> FeatureSchema | None:
+    """The feature schema stored by `save_xgboost`, if any."""
+    text = model.attr("feature_schema")
+    return FeatureSchema.from_json(text, source) if text else None

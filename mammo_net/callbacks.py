@@ -16,6 +16,7 @@ import lightning as L
 import numpy as np
 from lightning.pytorch.callbacks import Callback
 
+from datamodules.features import FeatureSchema
 from datamodules.trajectories import Breast
 from mammo_net import baselines
 from mammo_net.inference import breast_prediction, rows_predictor
@@ -39,7 +40,7 @@ class TreeBaseline(Callback):
     def predict(self, X: np.ndarray) -> np.ndarray:
         raise NotImplementedError
 
-    def save(self, path: Path) -> Path:
+    def save(self, path: Path, schema: FeatureSchema) -> Path:
         raise NotImplementedError
 
     def on_fit_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
@@ -49,7 +50,7 @@ class TreeBaseline(Callback):
         self.model = self.fit(X, Y)
         self.results[f"{self.name}/fit_seconds"] = time.perf_counter() - t0
         folder = Path(trainer.default_root_dir) / "baselines"
-        self.path = self.save(folder / f"{self.name}{self.suffix}")
+        self.path = self.save(folder / f"{self.name}{self.suffix}", dm.schema())
 
     def evaluate(self, breasts: list[Breast]) -> dict[str, float]:
         """Mean / median / std over ``breasts`` of the per-breast RMSE (all steps, last), mm."""
@@ -86,8 +87,8 @@ class XGBoostBaseline(TreeBaseline):
     def predict(self, X):
         return baselines.predict_xgboost(self.model, X)
 
-    def save(self, path):
-        return baselines.save_xgboost(self.model, path)
+    def save(self, path, schema):
+        return baselines.save_xgboost(self.model, path, schema)
 
 
 class ERTBaseline(TreeBaseline):
@@ -101,5 +102,5 @@ class ERTBaseline(TreeBaseline):
     def predict(self, X):
         return self.model.predict(X)
 
-    def save(self, path):
-        return baselines.save_forest(self.model, path)
+    def save(self, path, schema):
+        return baselines.save_forest(self.model, path, schema)

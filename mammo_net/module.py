@@ -10,6 +10,7 @@ import torch
 from numpy.typing import NDArray
 from torch.nn import functional as F
 
+from datamodules.features import FeatureSchema
 from mammo_net.metrics import BreastErrors
 from mammo_net.models import AttBLSTM
 
@@ -19,9 +20,10 @@ STAGES = ("train", "val", "test")
 class SurrogateModule(L.LightningModule):
     """Att-BLSTM on per-node step sequences, (B, T, F) -> (B, T, 3), RMSE loss.
 
-    The checkpoint holds everything to rebuild it: the hyperparameters and the feature
-    standardisation (buffers ``feature_mean``/``feature_std``, set from the training split
-    with `set_feature_normalization` before fitting).
+    The checkpoint holds everything to rebuild it: the hyperparameters, the feature
+    standardisation (buffers ``feature_mean``/``feature_std``) and the feature schema (step,
+    feature names, recorded steps; ``checkpoint["feature_schema"]``), both set from the
+    training data with `set_feature_normalization` before fitting.
 
     Parameters
     ----------
@@ -59,13 +61,26 @@ class SurrogateModule(L.LightningModule):
         self.net = AttBLSTM(n_features, hidden, layers, activations, dropout)
         self.register_buffer("feature_mean", torch.zeros(n_features))
         self.register_buffer("feature_std", torch.ones(n_features))
+        self.schema: FeatureSchema | None = None
         # keys f"{stage}_rmse": a ModuleDict key may not shadow a method (train)
         self.errors = torch.nn.ModuleDict({f"{stage}_rmse": BreastErrors() for stage in STAGES})
 
-    def set_feature_normalization(self, mean: NDArray, std: NDArray) -> None:
-        """Standardise the features with the training split's statistics, (F,) each."""
+    def set_feature_normalization(
+        self, mean: NDArray, std: NDArray, schema: FeatureSchema | None = None
+    ) -> None:
+        """Standardise the features with the training split's statistics, (F,) each, and
+        record the data's feature ``schema``."""
         self.feature_mean.copy_(torch.as_tensor(mean, dtype=torch.float32))
         self.feature_std.copy_(torch.as_tensor(std, dtype=torch.float32).clamp_min(1e-6))
+        self.schema = schema
+
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        if self.schema is not None:
+            checkpoint["feature_schema"] = self.schema.to_json()
+
+    def on_load_checkpoint(self, checkpoint: dict) -> None:
+        if "feature_schema" in checkpoint:
+            self.schema = FeatureSchema.from_json(checkpoint["feature_schema"], "checkpoint")
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         out = self.net((x - self.feature_mean) / self.feature_std)  # (B, T, 3)

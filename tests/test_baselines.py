@@ -2,18 +2,22 @@
 their non-pickle files and predict identical values."""
 
 import numpy as np
+import pytest
 from sklearn.ensemble import ExtraTreesRegressor
 
+from datamodules.features import FeatureSchema
 from mammo_net.baselines import (
     fit_ert,
     fit_xgboost,
     forest_arrays,
+    forest_schema,
     load_forest,
     load_xgboost,
     predict_xgboost,
     save_forest,
     save_xgboost,
     stack_rows,
+    xgboost_schema,
 )
 
 
@@ -51,3 +55,25 @@ def test_stack_rows():
     X, Y = stack_rows(iter(blocks))
     assert X.shape == (7, 2) and Y.shape == (7, 3) and X.dtype == np.float32
     np.testing.assert_array_equal(X[4:], 2)
+
+
+def test_model_files_carry_their_feature_schema(tmp_path):
+    X, Y = data()
+    schema = FeatureSchema.of("unloaded", 100)
+    forest = fit_ert(X, Y, n_estimators=2, n_jobs=1)
+    assert forest_schema(save_forest(forest, tmp_path / "ert.npz", schema)) == schema
+    assert forest_schema(save_forest(forest, tmp_path / "old.npz")) is None
+    booster = fit_xgboost(X, Y, n_estimators=2, max_depth=2, n_jobs=1)
+    for suffix in (".json", ".ubj"):
+        loaded = load_xgboost(save_xgboost(booster, tmp_path / f"xgb{suffix}", schema))
+        assert xgboost_schema(loaded) == schema
+    schema.check("unloaded")
+    with pytest.raises(ValueError, match="predicts the unloaded step, not the compression step"):
+        schema.check("compression", "ert.npz")
+    other = FeatureSchema("unloaded", schema.features[:-1], 100)
+    with pytest.raises(
+        ValueError, match=r"xgb.json: the model was trained on the features .*retrain"
+    ):
+        other.check("unloaded", "xgb.json")
+    with pytest.raises(ValueError, match=r"m\.ckpt: unreadable feature schema"):
+        FeatureSchema.from_json('{"step": "unloaded"}', "m.ckpt")

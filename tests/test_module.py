@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 import torch
 
+from datamodules.features import FeatureSchema
 from datamodules.trajectories import TrajectoryDataModule
 from mammo_net.models import AttBLSTM
 from mammo_net.module import SurrogateModule, warmup_cosine
@@ -27,7 +28,7 @@ def test_fit_log_and_reload(trajectory_folder, tmp_path):
     dm.setup()
     model = SurrogateModule(22, hidden=8, layers=1, lr=0.01)
     mean, std = dm.feature_statistics()
-    model.set_feature_normalization(mean, std)
+    model.set_feature_normalization(mean, std, dm.schema())
     trainer = L.Trainer(
         max_epochs=3,
         accelerator="cpu",
@@ -47,6 +48,7 @@ def test_fit_log_and_reload(trajectory_folder, tmp_path):
     ckpt = tmp_path / "model.ckpt"
     trainer.save_checkpoint(ckpt)
     again = SurrogateModule.load_from_checkpoint(ckpt, weights_only=True)
+    assert again.schema == FeatureSchema.of("compression", 3)  # tiny trajectories: 3 steps
     np.testing.assert_array_equal(again.feature_mean.numpy(), mean.astype(np.float32))
     x = next(iter(dm.val_dataloader()))[0]
     model.eval(), again.eval()

@@ -12,8 +12,10 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 import train
+from datamodules.features import FeatureSchema
 from datamodules.trajectories import TrajectoryDataModule
 from fem.trajectory import Trajectory
+from mammo_net.baselines import forest_schema, load_xgboost, xgboost_schema
 from mammo_net.inference import load_predictions
 from mammo_net.metrics import breast_rmse, comparison
 from mammo_net.module import SurrogateModule
@@ -53,6 +55,11 @@ def test_train_prints_the_comparison(trajectory_folder, tmp_path, capsys):
     assert (tmp_path / "baselines" / "xgboost.json").exists()
     assert (tmp_path / "baselines" / "ert.npz").exists()
     assert list((tmp_path / "checkpoints").glob("*.ckpt"))
+    schema = FeatureSchema.of("compression", 3)  # every model file knows what it takes
+    assert xgboost_schema(load_xgboost(tmp_path / "baselines" / "xgboost.json")) == schema
+    assert forest_schema(tmp_path / "baselines" / "ert.npz") == schema
+    ckpt = next((tmp_path / "checkpoints").glob("*.ckpt"))
+    assert SurrogateModule.load_from_checkpoint(ckpt, weights_only=True).schema == schema
     assert list((tmp_path / "tensorboard").glob("events.out.tfevents.*"))
     # The saved predictions (mm) reproduce the table's test errors against the FE positions.
     for model in ("xgboost", "ert", "att_blstm"):
