@@ -181,6 +181,7 @@ def save_xgboost(model: xgb.Booster, path: str | Path, schema: FeatureSchema | N
     as the booster attribute ``feature_schema``, atomically."""
     path = Path(path)
     if schema is not None:
+        model = model.copy()  # leave the caller's booster as it is
         model.set_attr(feature_schema=schema.to_json())
     with atomic_path(path) as tmp:
         model.save_model(str(tmp))  # the format follows the suffix: .json or .ubj
