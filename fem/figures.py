@@ -163,6 +163,36 @@ def breast_sections_png(
     return save_png(fig, path)
 
 
+def shapes_sections_png(
+    cells: NDArray,
+    tissue: NDArray,
+    shapes: dict[str, NDArray],
+    title: str,
+    path: str | Path,
+    centre: NDArray | None = None,
+) -> Path:
+    """Several node positions of one mesh (rows: ``{label: (N, 3)}``, mm) cut in the
+    sagittal, axial and coronal planes (columns) through ``centre`` (default: the first
+    shape's centroid), coloured by tissue, on common axes."""
+    first = next(iter(shapes.values()))
+    centre = first.mean(0) if centre is None else np.asarray(centre)
+    stacked = np.concatenate(list(shapes.values()))
+    lo, hi = stacked.min(0) - 5, stacked.max(0) + 5
+    fig, axes = plt.subplots(len(shapes), 3, figsize=(13, 3.6 * len(shapes)), squeeze=False)
+    for row, (label, points) in enumerate(shapes.items()):
+        for col, (plane, (axis, (h, v))) in enumerate(PLANES.items()):
+            ax = axes[row, col]
+            draw_mesh_section(ax, points, cells, tissue, plane, centre[axis])
+            ax.set_xlim(lo[h], hi[h])
+            ax.set_ylim(lo[v], hi[v])
+            ax.set_title(f"{label}: {plane}", fontsize=9)
+    handles = [plt.Rectangle((0, 0), 1, 1, fc=c, ec="#444444") for c in TISSUE_COLOURS[1:]]
+    fig.legend(handles, TISSUE_NAMES[1:], loc="upper right")
+    fig.suptitle(title)
+    fig.tight_layout(rect=(0, 0, 1, 0.97))
+    return save_png(fig, path)
+
+
 def cohort_summary_png(rows: Sequence[dict], path: str | Path) -> Path:
     """Histograms of breast volume, glandular fraction, compression ratio and element count,
     per site (rows: per-breast metadata dicts)."""

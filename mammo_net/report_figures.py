@@ -7,10 +7,9 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
-from matplotlib.patches import Patch
 from omegaconf import DictConfig
 
-from fem.figures import PLANES, TISSUE_COLOURS, TISSUE_NAMES, draw_mesh_section, plt, save_png
+from fem.figures import plt, save_png, shapes_sections_png
 from fem.trajectory import Trajectory
 from mammo_net import evaluation as ev
 from mammo_net.inference import load_predictions
@@ -156,29 +155,11 @@ def sections_png(e: Evaluation, name: str, which: str, path: Path) -> Path:
     traj = Trajectory.load(e.truth[name].path)
     shapes = {"FE (ground truth)": e.truth[name].positions[:, -1]}
     for m, r in e.models.items():
-        shapes[m] = load_predictions(r.sources[name])[name][:, -1]
-        shapes[m] = shapes[m].astype(float)
-    centre = shapes["FE (ground truth)"].mean(0)
-    stacked = np.concatenate(list(shapes.values()))
-    lo, hi = stacked.min(0) - 5, stacked.max(0) + 5
-    fig, axes = plt.subplots(len(shapes), 3, figsize=(13, 3.6 * len(shapes)), squeeze=False)
-    for row, (label, points) in enumerate(shapes.items()):
-        rmse = (
-            ""
-            if row == 0
-            else f", RMSE {e.models[label].errors[name][:, -1].mean():.2f} mm at this step"
-        )
-        for col, (plane, (axis, (h, v))) in enumerate(PLANES.items()):
-            ax = axes[row, col]
-            draw_mesh_section(ax, points, traj.cells, traj.tissue, plane, centre[axis])
-            ax.set_xlim(lo[h], hi[h])
-            ax.set_ylim(lo[v], hi[v])
-            ax.set_title(f"{label}{rmse}: {plane}", fontsize=9)
-    handles = [Patch(color=TISSUE_COLOURS[t], label=TISSUE_NAMES[t]) for t in (1, 2, 3)]
-    fig.legend(handles=handles, loc="upper right")
-    fig.suptitle(f"{which.capitalize()} breast {name}, last recorded step: {e.label}")
-    fig.tight_layout(rect=(0, 0, 1, 0.97))
-    return save_png(fig, path)
+        rmse = e.models[m].errors[name][:, -1].mean()
+        label = f"{m}, RMSE {rmse:.2f} mm at this step"
+        shapes[label] = load_predictions(r.sources[name])[name][:, -1].astype(float)
+    title = f"{which.capitalize()} breast {name}, last recorded step: {e.label}"
+    return shapes_sections_png(traj.cells, traj.tissue, shapes, title, path)
 
 
 def draw_all(
