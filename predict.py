@@ -1,9 +1,84 @@
-"""Prediction entry point (Hydra): deformed meshes for a new breast.
+"""Deformed meshes of a new breast from the trained surrogates, in milliseconds, without FE.
 
-Delivered by issue 6. Until then, ``fem.io.load_breast`` meshes a user's breast.
+    python predict.py input=case01.vtu thickness=55 laterality=L \
+        unloaded_model=<run>/checkpoints/last.ckpt compression_model=<run>/baselines/xgboost.json \
+        [landmarks=lesions.csv] [out_dir=outputs/predict/case01]
+
+The input (a Trajectory, a tetrahedral mesh or a segmentation, meshed first) goes through the
+unloaded-state model, then the compression model for each thickness (`mammo_net.predictor`).
+Writes the final shapes (VTU, and the input's format where meshio writes it), every step as an
+XDMF time series, a PNG preview in three body planes and the mapped landmarks (CSV, mm).
 """
 
-import sys
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import hydra
+from hydra.utils import instantiate, to_absolute_path
+from omegaconf import DictConfig, ListConfig, OmegaConf
+
+from fem.figures import shapes_sections_png
+from fem.io import file_suffix, is_segmentation, load_breast
+from mammo_net.predictor import (
+    load_surrogate,
+    map_landmarks,
+    predict_breast,
+    read_landmarks,
+    write_rows,
+    write_shapes,
+)
+
+
+def predict(cfg: DictConfig) -> Path:
+    """Run the command on a composed config; returns the output folder."""
+    out = Path(cfg.out_dir)
+    source = Path(to_absolute_path(cfg.input))
+    traj = load_breast(
+        source, OmegaConf.to_container(cfg.label_map), list(cfg.spacing), cfg.tissue_field,
+        instantiate(cfg.mesher),
+    )  # fmt: skip
+    traj.metadata.setdefault("source", str(source))
+    if cfg.laterality is not None:
+        traj.metadata["laterality"] = str(cfg.laterality)
+    unloaded = load_surrogate(to_absolute_path(cfg.unloaded_model), "unloaded")
+    compression = load_surrogate(to_absolute_path(cfg.compression_model), "compression")
+    thickness = list(cfg.thickness) if isinstance(cfg.thickness, ListConfig) else [cfg.thickness]
+    start = time.perf_counter()
+    shapes = predict_breast(traj, unloaded, compression, [float(t) for t in thickness])
+    seconds = time.perf_counter() - start
+    mesh_file = not is_segmentation(source) and file_suffix(source) != ".npz"
+    written = write_shapes(traj, shapes, out, file_suffix(source) if mesh_file else None)
+    if cfg.figures:
+        for k, t in enumerate(shapes.thickness):
+            rows = {
+                "imaged": traj.points,
+                f"unloaded ({unloaded.name})": shapes.unloaded[-1],
+                f"compressed to {t:g} mm ({compression.name})": shapes.compressed[k, -1],
+            }
+            title = f"{source.name}: predicted shapes, {t:g} mm"
+            written.append(
+                shapes_sections_png(
+                    traj.cells, traj.tissue, rows, title, out / f"preview_{t:g}mm.png"
+                )
+            )
+    if cfg.landmarks:
+        path = Path(to_absolute_path(cfg.landmarks))
+        names, points = read_landmarks(path)
+        rows = map_landmarks(traj, shapes, names, points, cfg.source_to_image_mm, str(path))
+        written.append(write_rows(rows, out / "landmarks.csv"))
+    print(
+        f"{traj.n_nodes} nodes, {len(thickness)} thickness(es): predicted in {1e3 * seconds:.0f} ms"
+    )
+    print("\n".join(f"wrote {p}" for p in written))
+    return out
+
+
+@hydra.main(config_path="conf", config_name="predict", version_base="1.3")
+def main(cfg: DictConfig) -> None:
+    predict(cfg)
+
 
 if __name__ == "__main__":
-    sys.exit("predict.py: prediction is not implemented yet (issue 6)")
+    main()

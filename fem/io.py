@@ -31,7 +31,8 @@ SEGMENTATION_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".nhdr", ".npy", ".npz")
 DEFAULT_LABELS: dict[str, int | list[int]] = {"background": 0, "fat": 1, "gland": 2, "muscle": 3}
 
 
-def _suffix(path: Path) -> str:
+def file_suffix(path: Path) -> str:
+    """The lower-case suffix of ``path``, ``.nii.gz`` counted as one."""
     name = path.name.lower()
     return ".nii.gz" if name.endswith(".nii.gz") else path.suffix.lower()
 
@@ -92,7 +93,7 @@ def read_segmentation(
         The array is not 3-D, holds values missing from the label map, or has no fat or gland.
     """
     path = _require_file(path)
-    suffix = _suffix(path)
+    suffix = file_suffix(path)
     if suffix in (".nii", ".nii.gz"):
         import nibabel
 
@@ -245,9 +246,9 @@ def _tissue_from_sets(
 def is_segmentation(path: str | Path) -> bool:
     """Whether ``path`` names a label volume (to be meshed) rather than a mesh or trajectory."""
     path = Path(path)
-    if _suffix(path) not in SEGMENTATION_SUFFIXES:
+    if file_suffix(path) not in SEGMENTATION_SUFFIXES:
         return False
-    if _suffix(path) == ".npz" and path.is_file():
+    if file_suffix(path) == ".npz" and path.is_file():
         with np.load(path, allow_pickle=False) as z:
             return "schema_version" not in z
     return True
@@ -265,7 +266,7 @@ def load_breast(
     if is_segmentation(path):
         volume = read_segmentation(path, label_map, spacing)
         return (mesher or Mesher())(volume, {"source": str(path)})
-    if _suffix(path) == ".npz":
+    if file_suffix(path) == ".npz":
         return Trajectory.load(path)
     return read_mesh(path, tissue_field, label_map)
 

@@ -14,15 +14,21 @@ thicknesses go through the compression model in one batched call.
 
 from __future__ import annotations
 
+import csv
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
+import meshio
 import numpy as np
 from numpy.typing import NDArray
 
 from datamodules.features import FeatureSchema, compression_inputs, unloaded_inputs
+from fem.atomic import atomic_path
+from fem.io import write_mesh
+from fem.landmarks import SOURCE_TO_IMAGE_MM, carry, locate, project_cc
 from fem.simulate import plate_schedule
+from fem.timeseries import write_time_series
 from fem.trajectory import Trajectory
 from mammo_net import baselines
 from mammo_net.inference import network_predictor, rows_predictor
@@ -142,3 +148,132 @@ def predict_breast(
         ratio,
         np.asarray(thicknesses, float),
     )
+
+
+# --- files ---------------------------------------------------------------------------------
+
+
+def predicted_trajectory(traj: Trajectory, shapes: BreastShapes, k: int) -> Trajectory:
+    """``traj`` with the predicted steps of the ``k``-th thickness as its trajectories."""
+    return replace(
+        traj,
+        unloaded=shapes.unloaded.astype(np.float64),
+        compressed=shapes.compressed[k].astype(np.float64),
+        plates=shapes.plates[k],
+        compression_ratio=shapes.compression_ratio[k],
+    )
+
+
+def write_shapes(
+    traj: Trajectory, shapes: BreastShapes, out_dir: str | Path, own_suffix: str | None = None
+) -> list[Path]:
+    """Write the predicted meshes into ``out_dir``, each atomically.
+
+    ``unloaded.vtu`` (the unloaded shape), and per thickness t: ``compressed_<t>mm.vtu`` (the
+    final shape) and ``trajectory_<t>mm.xdmf`` (the imaged mesh, every unloaded-state and
+    compression step: a ParaView time series). With ``own_suffix`` (the input's format, e.g.
+    ``.inp``) the final shapes are also written in that format when meshio can write it.
+    """
+    out = Path(out_dir)
+    suffixes = [".vtu"] + (
+        [own_suffix] if own_suffix and own_suffix not in (".vtu", ".npz") else []
+    )
+    written = []
+    for suffix in suffixes:
+        try:
+            written.append(
+                write_mesh(
+                    replace(traj, points=shapes.unloaded[-1].astype(float)),
+                    out / f"unloaded{suffix}",
+                )
+            )
+            for k, t in enumerate(shapes.thickness):
+                final = replace(traj, points=shapes.compressed[k, -1].astype(float))
+                written.append(write_mesh(final, out / f"compressed_{t:g}mm{suffix}"))
+        except (KeyError, ValueError, meshio.WriteError) as exc:  # meshio cannot write it
+            print(f"not written in the input's format {suffix}: {exc}")
+    for k, t in enumerate(shapes.thickness):
+        written.append(
+            write_time_series(
+                predicted_trajectory(traj, shapes, k), out / f"trajectory_{t:g}mm.xdmf"
+            )
+        )
+    return written
+
+
+def read_landmarks(path: str | Path) -> tuple[list[str], NDArray[np.float64]]:
+    """Names and coordinates (Q, 3) mm of the landmarks in a CSV with columns ``x, y, z``
+    (and optionally ``name``).
+
+    Raises
+    ------
+    ValueError
+        No landmark, a missing column, or a coordinate that is not a number.
+    """
+    path = Path(path)
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    if not rows:
+        raise ValueError(f"{path}: no landmarks (expected a header x,y,z and one row per point)")
+    for field in ("x", "y", "z"):
+        if field not in rows[0]:
+            raise ValueError(f"{path}: field {field!r} missing (columns: {list(rows[0])})")
+    names, points = [], []
+    for i, row in enumerate(rows, start=1):
+        names.append(row.get("name") or str(i))
+        try:
+            points.append([float(row[c]) for c in ("x", "y", "z")])
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"{path}: row {i}: fields x, y, z must be numbers ({exc})") from exc
+    return names, np.array(points)
+
+
+def map_landmarks(
+    traj: Trajectory,
+    shapes: BreastShapes,
+    names: Sequence[str],
+    points: NDArray,
+    source_to_image: float | None = SOURCE_TO_IMAGE_MM,
+    source: str = "landmarks",
+) -> list[dict[str, float | str]]:
+    """Landmarks carried to the unloaded shape and to each compressed shape, and projected
+    onto the detector of the cranio-caudal view (under the lower plate; the X-ray source above
+    the middle of the breast's chest-wall edge). One row per landmark and thickness, mm."""
+    cell, weights = locate(traj.points, traj.cells, points)
+    outside = np.flatnonzero(cell < 0)
+    if len(outside):
+        i = outside[0]
+        raise ValueError(
+            f"{source}: landmark {names[i]!r} at {points[i].round(1).tolist()} mm lies outside "
+            f"the breast mesh (bounds {traj.points.min(0).round(1).tolist()} to "
+            f"{traj.points.max(0).round(1).tolist()} mm)"
+        )
+    unloaded = carry(shapes.unloaded[-1], traj.cells, cell, weights)  # (Q, 3)
+    compressed = carry(shapes.compressed[:, -1], traj.cells, cell, weights)  # (K, Q, 3)
+    rows = []
+    for k, t in enumerate(shapes.thickness):
+        final = shapes.compressed[k, -1]
+        plates = shapes.plates[k, -1]  # lower plate (y edge, z), upper plate
+        foot = (float(final[:, 0].mean()), float(plates[0, 0]))
+        detector = project_cc(compressed[k], float(plates[0, 1]), foot, source_to_image)
+        for q, name in enumerate(names):
+            rows.append(
+                {"name": name, "thickness_mm": float(t)}
+                | dict(zip(("x", "y", "z"), points[q], strict=True))
+                | dict(zip(("unloaded_x", "unloaded_y", "unloaded_z"), unloaded[q], strict=True))
+                | dict(zip(("compressed_x", "compressed_y", "compressed_z"), compressed[k, q], strict=True))
+                | dict(zip(("detector_x", "detector_y"), detector[q], strict=True))
+            )  # fmt: skip
+    return rows
+
+
+def write_rows(rows: Sequence[dict], path: str | Path) -> Path:
+    """Rows of `map_landmarks` as CSV (numbers in mm to 0.001), atomically."""
+    path = Path(path)
+    with atomic_path(path) as tmp, open(tmp, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(
+            {k: f"{v:.3f}" if isinstance(v, float) else v for k, v in r.items()} for r in rows
+        )
+    return path

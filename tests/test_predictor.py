@@ -1,21 +1,29 @@
 """The prediction API: models load with their schema, and predict_breast builds the same
 features as the training caches, batched over thicknesses."""
 
+import csv
 from dataclasses import replace
+from pathlib import Path
 
 import lightning as L
+import meshio
 import numpy as np
 import pytest
 import torch
 from conftest import tiny_trajectory
+from hydra import compose, initialize_config_dir
 
+import predict
 from datamodules.features import FeatureSchema, compression_features, unloaded_features
 from datamodules.trajectories import TrajectoryDataModule
+from fem.io import write_mesh
 from fem.simulate import plate_schedule
 from fem.trajectory import NodeFlag
 from mammo_net import baselines
 from mammo_net.module import SurrogateModule
 from mammo_net.predictor import load_surrogate, predict_breast
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def scheduled_trajectory(thickness=0.7, patient=0):
@@ -94,3 +102,93 @@ def test_wrong_models_and_thicknesses_are_refused(models):
         predict_breast(scheduled_trajectory(), unloaded, unloaded, [0.7])
     with pytest.raises(ValueError, match="is not smaller than the breast's cranio-caudal extent"):
         predict_breast(scheduled_trajectory(), None, compression, [5.0])
+
+
+def _predict_cfg(models, tmp_path, *overrides):
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        return compose(
+            "predict",
+            overrides=[
+                f"unloaded_model={models / 'unloaded.ckpt'}",
+                f"compression_model={models / 'compression.json'}",
+                f"out_dir={tmp_path / 'out'}",
+                *overrides,
+            ],
+        )
+
+
+def test_predict_writes_meshes_time_series_preview_and_landmarks(models, tmp_path):
+    traj = scheduled_trajectory(0.7)
+    traj.metadata.pop("laterality")
+    meshio_file = tmp_path / "case.vtu"
+    write_mesh(traj, meshio_file)  # a user's mesh: no laterality in it
+    centroid = traj.points[traj.cells[0]].mean(0)
+    (tmp_path / "lm.csv").write_text(
+        f"name,x,y,z\nlesion,{centroid[0]},{centroid[1]},{centroid[2]}\n"
+    )
+    cfg = _predict_cfg(
+        models, tmp_path, f"input={meshio_file}", "thickness=[0.6,0.8]", "laterality=R",
+        f"landmarks={tmp_path / 'lm.csv'}",
+    )  # fmt: skip
+    out = predict.predict(cfg)
+    names = sorted(p.name for p in out.iterdir())
+    assert names == [
+        "compressed_0.6mm.vtu", "compressed_0.8mm.vtu", "landmarks.csv", "preview_0.6mm.png",
+        "preview_0.8mm.png", "trajectory_0.6mm.xdmf", "trajectory_0.8mm.xdmf", "unloaded.vtu",
+    ]  # fmt: skip
+    shapes = predict_breast(
+        replace(traj, metadata={"laterality": "R"}),
+        load_surrogate(models / "unloaded.ckpt"),
+        load_surrogate(models / "compression.json"),
+        [0.6, 0.8],
+    )
+    final = meshio.read(out / "compressed_0.8mm.vtu")
+    np.testing.assert_allclose(final.points, shapes.compressed[1, -1], atol=1e-5)
+    np.testing.assert_array_equal(final.cell_data["tissue"][0], traj.tissue)
+    with open(out / "landmarks.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [r["thickness_mm"] for r in rows] == ["0.600", "0.800"]
+    # The landmark is the first element's centroid: it moves with its four nodes.
+    expected = shapes.compressed[1, -1][traj.cells[0]].mean(0)
+    got = [float(rows[1][f"compressed_{c}"]) for c in "xyz"]
+    np.testing.assert_allclose(got, expected, atol=2e-3)
+
+
+def test_predict_refuses_bad_requests(models, tmp_path):
+    traj = scheduled_trajectory(0.7)
+    traj.save(tmp_path / "case.npz")
+    base = (f"input={tmp_path / 'case.npz'}",)
+    with pytest.raises(ValueError, match="is not smaller than the breast's cranio-caudal extent"):
+        predict.predict(_predict_cfg(models, tmp_path, *base, "thickness=3"))
+    (tmp_path / "empty.csv").write_text("name,x,y,z\n")
+    with pytest.raises(ValueError, match=r"empty.csv: no landmarks"):
+        predict.predict(
+            _predict_cfg(
+                models, tmp_path, *base, "thickness=0.7", f"landmarks={tmp_path / 'empty.csv'}"
+            )
+        )
+    (tmp_path / "far.csv").write_text("x,y,z\n100,100,100\n")
+    with pytest.raises(
+        ValueError, match=r"far.csv: landmark '1' at \[100.0, 100.0, 100.0\] mm lies outside"
+    ):
+        predict.predict(
+            _predict_cfg(
+                models, tmp_path, *base, "thickness=0.7", f"landmarks={tmp_path / 'far.csv'}"
+            )
+        )
+    with pytest.raises(ValueError, match="predicts the unloaded step, not the compression step"):
+        predict.predict(
+            _predict_cfg(
+                models,
+                tmp_path,
+                *base,
+                "thickness=0.7",
+                f"compression_model={models / 'unloaded.ckpt'}",
+            )
+        )
+    traj.metadata.pop("laterality")
+    traj.save(tmp_path / "nolat.npz")
+    with pytest.raises(ValueError, match="metadata field 'laterality' must be 'L' or 'R'"):
+        predict.predict(
+            _predict_cfg(models, tmp_path, f"input={tmp_path / 'nolat.npz'}", "thickness=0.7")
+        )
