@@ -245,6 +245,15 @@ def volume_correlation(result: ModelResult, truth: dict[str, BreastTruth]) -> fl
     )
 
 
+def keep_common_breasts(e: Evaluation) -> None:
+    """Drop the breasts that not every model of ``e`` predicted (a paired comparison, e.g.
+    while some folds of one model are still missing)."""
+    common = set.intersection(*(set(r.errors) for r in e.models.values()))
+    for r in e.models.values():
+        r.errors = {n: v for n, v in r.errors.items() if n in common}
+    e.truth = {n: t for n, t in e.truth.items() if n in common}
+
+
 def ranked_breasts(e: Evaluation) -> list[str]:
     """Breasts predicted by every model, from the lowest to the highest mean over the models of
     their all-steps RMSE."""
@@ -401,6 +410,9 @@ def write_report(
     from mammo_net import report_figures as figures
 
     evaluations = collect(runs, data_dir)
+    if analysis.get("common_breasts"):
+        for e in evaluations:
+            keep_common_breasts(e)
     out = Path(out_dir)
     numbers = compute(evaluations, analysis)
     breast_rows, step_rows = [], []

@@ -144,6 +144,20 @@ def test_error_classes_of_the_tiny_cohort(cohort):
     np.testing.assert_allclose(ev.error_classes(nodes)[:3], [20.0, 80.0, 0.0], atol=1e-4)
 
 
+def test_common_breasts_pair_the_models(cohort, tmp_path):
+    other = dict(np.load(cohort / "fold0" / "predictions" / "model.npz"))
+    np.savez(cohort / "fold0" / "predictions" / "second.npz", **other)  # fold 0 only: A, B
+    analysis = OmegaConf.load(CONF / "analysis" / "default.yaml")
+    analysis.sections = False
+    write_report([cohort / "*"], tmp_path / "all", analysis)
+    analysis.common_breasts = True
+    write_report([cohort / "*"], tmp_path / "common", analysis)
+    for folder, n in (("all", 3), ("common", 2)):
+        s = json.loads((tmp_path / folder / "report.json").read_text())["summary"]
+        assert s["10_fold_CV_compression"]["model"]["n_breasts"] == n
+        assert s["10_fold_CV_compression"]["second"]["n_breasts"] == 2
+
+
 def test_report_refuses_a_breast_predicted_twice(cohort):
     second = cohort / "fold1" / "predictions" / "model.npz"
     a = dict(np.load(cohort / "fold0" / "predictions" / "model.npz"))
