@@ -97,10 +97,12 @@ class ERTBaseline(TreeBaseline):
     name, suffix = "ert", ".npz"
 
     def fit(self, X, Y):
-        return baselines.fit_ert(X, Y, **self.params)
+        forest = baselines.fit_ert(X, Y, **self.params)
+        self.compiled = forest.compiled(X.shape[1])  # scikit-learn's traversal, same values
+        return forest
 
     def predict(self, X):
-        return self.model.predict(X)
+        return self.compiled(X)
 
     def save(self, path, schema):
         return baselines.save_forest(self.model, path, schema)

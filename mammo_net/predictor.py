@@ -68,9 +68,9 @@ def load_surrogate(path: str | Path, step: str | None = None) -> Surrogate:
         name, schema = "xgboost", baselines.xgboost_schema(booster, str(path))
         predict = rows_predictor(lambda X: baselines.predict_xgboost(booster, X))
     elif path.suffix == ".npz":
-        forest = baselines.load_forest(path)
         name, schema = "ert", baselines.forest_schema(path)
-        predict = rows_predictor(forest.predict)
+        forest = baselines.load_forest(path)
+        predict = rows_predictor(forest.compiled(len(schema.features))) if schema else None
     else:
         raise ValueError(f"{path}: a model file ends in one of {MODEL_SUFFIXES}")
     if schema is None:

@@ -36,6 +36,16 @@ def test_forest_arrays_predict_like_scikit_learn():
     np.testing.assert_allclose(forest.predict(Xt), model.predict(Xt), rtol=1e-6, atol=1e-6)
 
 
+def test_compiled_forest_predicts_as_the_reference():
+    X, Y = data(2000)
+    forest = fit_ert(X, Y, n_estimators=9, min_samples_leaf=3, n_jobs=1)
+    Xt, _ = data(500, seed=2)
+    for threads in (1, 2, 4):
+        np.testing.assert_array_equal(forest.compiled(5, threads)(Xt), forest.predict(Xt))
+    stump = fit_ert(X[:1], Y[:1], n_estimators=2, n_jobs=1)  # single-leaf trees
+    np.testing.assert_array_equal(stump.compiled(5)(Xt), stump.predict(Xt))
+
+
 def test_baselines_reload_identically(tmp_path):
     X, Y = data()
     forest = fit_ert(X, Y, n_estimators=5, n_jobs=1)
