@@ -6,6 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import tiny_trajectory
+from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from mammo_net import evaluation as ev
@@ -211,3 +212,11 @@ def test_binning_interpolation_and_lognormal():
     np.testing.assert_allclose(ev.error_classes([0.0, 21.9, 22.0, 50.0])[[0, 10, 11]], [25, 25, 50])
     assert ev.pearson_r([1, 2, 3], [2, 4, 6]) == pytest.approx(1.0)
     assert np.isnan(ev.pearson_r([1, 1, 1], [2, 4, 6]))
+
+
+def test_report_command_config_composes(cohort, tmp_path):
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        cfg = compose("report", overrides=[f"runs=[{cohort}/*]", f"out_dir={tmp_path / 'r'}"])
+    assert cfg.runs == [f"{cohort}/*"] and cfg.data_dir is None
+    assert cfg.analysis.linear_fit_max_ratio == 0.53 and cfg.analysis.ratio_of_interest == 0.2
+    assert (write_report(cfg.runs, cfg.out_dir, cfg.analysis, cfg.data_dir) / "report.md").exists()
