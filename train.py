@@ -22,7 +22,7 @@ from omegaconf import DictConfig
 from fem.atomic import atomic_path
 from fem.cohort import run_cohort
 from mammo_net.callbacks import TreeBaseline
-from mammo_net.inference import network_predictor, rows_predictor, save_predictions
+from mammo_net.inference import network_predictor, save_predictions
 from mammo_net.metrics import comparison
 from mammo_net.report import write_report
 
@@ -82,7 +82,7 @@ def train(cfg: DictConfig) -> float:
         if trained:
             save_predictions(folder / "att_blstm.npz", network_predictor(model), dm.val)
         for c in baselines:
-            save_predictions(folder / f"{c.name}.npz", rows_predictor(c.predict), dm.val)
+            save_predictions(folder / f"{c.name}.npz", c.predictor(), dm.val)
         with atomic_path(Path(cfg.run_dir) / "results.md") as tmp:
             tmp.write_text(table)
         print(table)

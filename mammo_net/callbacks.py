@@ -19,8 +19,9 @@ from lightning.pytorch.callbacks import Callback
 from datamodules.features import FeatureSchema
 from datamodules.trajectories import Breast
 from mammo_net import baselines
-from mammo_net.inference import breast_prediction, rows_predictor
+from mammo_net.inference import breast_prediction
 from mammo_net.metrics import breast_rmse, summarize_breasts
+from mammo_net.sequence_trees import TreeEnsemble, from_forest, from_xgboost, sequence_predictor
 
 
 class TreeBaseline(Callback):
@@ -43,6 +44,14 @@ class TreeBaseline(Callback):
     def save(self, path: Path, schema: FeatureSchema) -> Path:
         raise NotImplementedError
 
+    def ensemble(self) -> TreeEnsemble:
+        raise NotImplementedError
+
+    def predictor(self):
+        """``(N, T, F) -> (N, T, 3)``: whole sequences through the trees (`sequence_trees`),
+        row by row where the features do not separate."""
+        return sequence_predictor(self.ensemble(), self.predict)
+
     def on_fit_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         dm = trainer.datamodule
         X, Y = baselines.stack_rows(dm.rows(dm.train))
@@ -54,7 +63,7 @@ class TreeBaseline(Callback):
 
     def evaluate(self, breasts: list[Breast]) -> dict[str, float]:
         """Mean / median / std over ``breasts`` of the per-breast RMSE (all steps, last), mm."""
-        predict = rows_predictor(self.predict)
+        predict = self.predictor()
         return summarize_breasts(
             [
                 breast_rmse(breast_prediction(predict, b), b.normalization().invert(b.targets()))
@@ -90,6 +99,9 @@ class XGBoostBaseline(TreeBaseline):
     def save(self, path, schema):
         return baselines.save_xgboost(self.model, path, schema)
 
+    def ensemble(self):
+        return from_xgboost(self.model)
+
 
 class ERTBaseline(TreeBaseline):
     """Extremely randomized trees (`mammo_net.baselines.fit_ert`)."""
@@ -106,3 +118,6 @@ class ERTBaseline(TreeBaseline):
 
     def save(self, path, schema):
         return baselines.save_forest(self.model, path, schema)
+
+    def ensemble(self):
+        return from_forest(self.model)

@@ -42,20 +42,6 @@ def network_predictor(
     return predict
 
 
-def rows_predictor(
-    predict_rows: Callable[[NDArray], NDArray],
-) -> Callable[[NDArray], NDArray[np.float32]]:
-    """``(N, T, F) -> (N, T, 3)`` from a row model ``(rows, F) -> (rows, 3)`` (the trees)."""
-
-    def predict(features: NDArray) -> NDArray[np.float32]:
-        f = np.asarray(features)
-        return np.asarray(predict_rows(f.reshape(-1, f.shape[-1])), np.float32).reshape(
-            *f.shape[:2], 3
-        )
-
-    return predict
-
-
 def breast_prediction(predict: Callable[[NDArray], NDArray], breast: Breast) -> NDArray[np.float32]:
     """A breast's predicted node coordinates per step, (N, T, 3) mm."""
     return breast.normalization().invert(predict(breast.features())).astype(np.float32)

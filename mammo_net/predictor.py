@@ -31,7 +31,8 @@ from fem.simulate import plate_schedule
 from fem.timeseries import write_time_series
 from fem.trajectory import Trajectory
 from mammo_net import baselines
-from mammo_net.inference import network_predictor, rows_predictor
+from mammo_net.inference import network_predictor
+from mammo_net.sequence_trees import from_forest, from_xgboost, sequence_predictor
 
 MODEL_SUFFIXES = (".ckpt", ".json", ".ubj", ".npz")
 
@@ -66,11 +67,14 @@ def load_surrogate(path: str | Path, step: str | None = None) -> Surrogate:
     elif path.suffix in (".json", ".ubj"):
         booster = baselines.load_xgboost(path)
         name, schema = "xgboost", baselines.xgboost_schema(booster, str(path))
-        predict = rows_predictor(lambda X: baselines.predict_xgboost(booster, X))
+        predict = sequence_predictor(
+            from_xgboost(booster), lambda X: baselines.predict_xgboost(booster, X)
+        )
     elif path.suffix == ".npz":
         name, schema = "ert", baselines.forest_schema(path)
         forest = baselines.load_forest(path)
-        predict = rows_predictor(forest.compiled(len(schema.features))) if schema else None
+        rows = forest.compiled(len(schema.features)) if schema else None
+        predict = sequence_predictor(from_forest(forest), rows)
     else:
         raise ValueError(f"{path}: a model file ends in one of {MODEL_SUFFIXES}")
     if schema is None:
