@@ -1,0 +1,82 @@
+"""predict.py end to end: fresh phantoms meshed and simulated (a tiny cohort), XGBoost fitted
+for both steps on all but one patient, then the held-out patient's mesh file (no FE result in
+it) through predict.py: deformed VTU files and mapped landmarks, and the predicted final
+shape compared with the FE's."""
+
+import csv
+
+import meshio
+import numpy as np
+import pytest
+from test_cohort import _cfg
+from test_predictor import _predict_cfg
+
+import predict
+from datamodules.trajectories import TrajectoryDataModule
+from fem.cohort import run_cohort
+from fem.trajectory import Trajectory
+from mammo_net import baselines
+
+TINY = ("mesher.target_elements=700", "mesher.tolerance=200", "figures=false")
+FEW_STEPS = ("simulation.unloaded_steps=5", "simulation.compression_steps=6")
+
+
+@pytest.fixture(scope="module")
+def tiny_cohort(tmp_path_factory):
+    """5 patients (10 breasts, 500-900 tetrahedra) and XGBoost models of both steps fitted on
+    the breasts of the patients outside fold 0 of 5."""
+    out = tmp_path_factory.mktemp("cohort")
+    report = run_cohort(_cfg(out, "n_patients=5", "simulate=true", *TINY, *FEW_STEPS))
+    assert report["simulation"]["n_failed"] == 0
+    models = {}
+    for step in ("unloaded", "compression"):
+        dm = TrajectoryDataModule(str(out / "trajectories"), step=step, fold=0, n_folds=5)
+        dm.prepare_data()
+        dm.setup()
+        X, Y = baselines.stack_rows(dm.rows(dm.train))
+        booster = baselines.fit_xgboost(X, Y, n_estimators=60, max_depth=5, n_jobs=2)
+        models[step] = baselines.save_xgboost(booster, out / f"{step}.json", dm.schema())
+    return out, models, [b.name for b in dm.val]
+
+
+def test_a_new_breast_through_predict_py(tiny_cohort, tmp_path):
+    out, models, held_out = tiny_cohort
+    name = held_out[0]
+    fe = Trajectory.load(out / "trajectories" / f"{name}.npz")
+    thickness = float(fe.metadata["simulation"]["compressed_thickness_mm"])
+    inside = fe.points[fe.cells[len(fe.cells) // 2]].mean(0)  # a "lesion": an element centroid
+    (tmp_path / "lesion.csv").write_text("name,x,y,z\nlesion,{},{},{}\n".format(*inside))
+    cfg = _predict_cfg(
+        tmp_path, tmp_path, f"input={out / f'{name}.vtu'}", f"thickness={thickness}",
+        f"laterality={fe.metadata['laterality']}", f"landmarks={tmp_path / 'lesion.csv'}",
+        f"unloaded_model={models['unloaded']}", f"compression_model={models['compression']}",
+    )  # fmt: skip
+    result = predict.predict(cfg)
+    final = meshio.read(result / f"compressed_{thickness:g}mm.vtu").points
+    unloaded = meshio.read(result / "unloaded.vtu").points
+    assert final.shape == fe.compressed[-1].shape
+
+    def rms(a, b):
+        return float(np.sqrt(((a - b) ** 2).sum(1).mean()))
+
+    # Stated tolerance, on a patient the models never saw: the final shape within 35 % of
+    # the FE displacement (RMS over nodes) of the FE's final shape (measured: 5.8 mm of
+    # 23.2 mm, 25 %), the unloaded shape within 3 mm RMS of the FE's (measured: 1.8 mm).
+    error = rms(final, fe.compressed[-1])
+    assert error < 0.35 * rms(fe.compressed[-1], fe.points)
+    assert rms(unloaded, fe.unloaded[-1]) < 3.0
+    # The predicted shape is about as thick as the FE's (mm).
+    assert np.ptp(final[:, 2]) == pytest.approx(np.ptp(fe.compressed[-1][:, 2]), abs=6.0)
+    with open(result / "landmarks.csv") as f:
+        (row,) = list(csv.DictReader(f))
+    cell = fe.cells[len(fe.cells) // 2]
+    np.testing.assert_allclose(
+        [float(row[f"compressed_{c}"]) for c in "xyz"], final[cell].mean(0), atol=2e-3
+    )
+    np.testing.assert_allclose(
+        [float(row[f"unloaded_{c}"]) for c in "xyz"], unloaded[cell].mean(0), atol=2e-3
+    )
+    # The mapped lesion lies near where the FE moves the same material point (measured: 6.1
+    # mm from it).
+    lesion = np.array([float(row[f"compressed_{c}"]) for c in "xyz"])
+    assert np.linalg.norm(lesion - fe.compressed[-1][cell].mean(0)) < 3 * error
