@@ -42,8 +42,10 @@ def predict(cfg: DictConfig) -> Path:
     traj.metadata.setdefault("source", str(source))
     if cfg.laterality is not None:
         traj.metadata["laterality"] = str(cfg.laterality)
-    unloaded = load_surrogate(to_absolute_path(cfg.unloaded_model), "unloaded")
-    compression = load_surrogate(to_absolute_path(cfg.compression_model), "compression")
+    unloaded, compression = (
+        load_surrogate(to_absolute_path(path), step, precision=cfg.precision)
+        for path, step in ((cfg.unloaded_model, "unloaded"), (cfg.compression_model, "compression"))
+    )
     thickness = list(cfg.thickness) if isinstance(cfg.thickness, ListConfig) else [cfg.thickness]
     start = time.perf_counter()
     shapes = predict_breast(traj, unloaded, compression, [float(t) for t in thickness])

@@ -1,13 +1,18 @@
 """Prediction time per breast with `mammo_net.predictor.predict_breast`: features, the
-unloaded-state model, plate placement and the compression model, for one thickness and for a
-batched sweep of thicknesses.
+unloaded-state model, plate placement and the compression model (the whole trajectory: every
+recorded step of both simulation steps), for one thickness and per thickness in a batched
+sweep, for each model.
 
     python benchmarks/predict_time.py data/cohort/full/trajectories/P0001_L.npz ... \
-        --unloaded <run>/checkpoints/last.ckpt --compression <run>/baselines/xgboost.json
+        --model att_blstm <run>/checkpoints/last.ckpt <run>/checkpoints/last.ckpt \
+        --model xgboost <unloaded run>/baselines/xgboost.json <run>/baselines/xgboost.json \
+        --model ert <unloaded run>/baselines/ert.npz <run>/baselines/ert.npz --row-by-row
 
-Each breast is predicted ``--repeats`` times after one untimed warm-up call; prints the median
-wall time per breast for one thickness (the FE's) and per thickness in a sweep of
-``--sweep`` thicknesses (80-100 % of the FE thickness) in one call.
+Each breast is predicted ``--repeats`` times after one untimed warm-up call; the table gives
+the median over breasts of each breast's median wall time. ``--row-by-row`` also times the
+tree models' own row-by-row predictions (XGBoost's and scikit-learn's), which the step-interval
+traversal (`mammo_net.sequence_trees`) replaces; ``--bf16`` also times the networks in
+``bf16-mixed`` precision.
 """
 
 from __future__ import annotations
@@ -16,6 +21,7 @@ import argparse
 import statistics
 import time
 
+import numba
 import numpy as np
 import torch
 
@@ -39,32 +45,49 @@ def main() -> None:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     ap.add_argument("breasts", nargs="+", help="simulated trajectories (.npz)")
-    ap.add_argument("--unloaded", required=True, help="model file of the unloaded-state step")
-    ap.add_argument("--compression", required=True, help="model file of the compression step")
+    ap.add_argument(
+        "--model", nargs=3, action="append", required=True,
+        metavar=("NAME", "UNLOADED", "COMPRESSION"), help="a model's files of both steps",
+    )  # fmt: skip
+    ap.add_argument("--row-by-row", action="store_true", help="also the trees' row predictions")
+    ap.add_argument("--bf16", action="store_true", help="also the networks in bf16-mixed")
     ap.add_argument("--sweep", type=int, default=20, help="thicknesses in the batched call")
-    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--repeats", type=int, default=7)
     args = ap.parse_args()
 
-    unloaded = load_surrogate(args.unloaded, "unloaded")
-    compression = load_surrogate(args.compression, "compression")
-    single, swept = [], []
-    for path in args.breasts:
-        traj = Trajectory.load(path)
-        fe = float(traj.metadata["simulation"]["compressed_thickness_mm"])
-        sweep = np.linspace(0.8 * fe, fe, args.sweep)  # thinner: always below the breast
-        models = (traj, unloaded, compression)
-        single.append(timed(args.repeats, predict_breast, *models, [fe]))
-        swept.append(timed(args.repeats, predict_breast, *models, sweep) / args.sweep)
-        print(
-            f"{traj.metadata.get('source', path)}: {traj.n_nodes} nodes, one thickness "
-            f"{1e3 * single[-1]:.1f} ms, sweep of {args.sweep} {1e3 * swept[-1]:.1f} ms each"
-        )
+    breasts = [Trajectory.load(p) for p in args.breasts]
+    variants = []
+    for name, unloaded, compression in args.model:
+        variants.append((name, unloaded, compression, {}))
+        network = unloaded.endswith(".ckpt")
+        if args.row_by_row and not network:
+            variants.append((f"{name} (row by row)", unloaded, compression, {"row_by_row": True}))
+        if args.bf16 and network:
+            variants.append((f"{name} (bf16)", unloaded, compression, {"precision": "bf16-mixed"}))
     print(
-        f"{unloaded.name} + {compression.name}, {torch.get_num_threads()} torch threads: "
-        f"median {1e3 * statistics.median(single):.1f} ms per breast (whole trajectory, one "
-        f"thickness); {1e3 * statistics.median(swept):.1f} ms per thickness in a sweep of "
-        f"{args.sweep}"
+        f"{len(breasts)} breasts, {min(b.n_nodes for b in breasts)}-"
+        f"{max(b.n_nodes for b in breasts)} nodes, {min(len(b.cells) for b in breasts)}-"
+        f"{max(len(b.cells) for b in breasts)} tetrahedra; torch threads "
+        f"{torch.get_num_threads()}, numba threads {numba.get_num_threads()}; median of "
+        f"{args.repeats} runs per breast, median over breasts\n"
     )
+    print(f"| model | one thickness (ms) | per thickness, sweep of {args.sweep} (ms) |")
+    print("| --- | --- | --- |")
+    for name, unloaded_file, compression_file, options in variants:
+        unloaded = load_surrogate(unloaded_file, "unloaded", **options)
+        compression = load_surrogate(compression_file, "compression", **options)
+        single, swept = [], []
+        for traj in breasts:
+            fe = float(traj.metadata["simulation"]["compressed_thickness_mm"])
+            sweep = np.linspace(0.8 * fe, fe, args.sweep)  # thinner: always below the breast
+            models = (traj, unloaded, compression)
+            single.append(timed(args.repeats, predict_breast, *models, [fe]))
+            swept.append(timed(max(1, args.repeats // 2), predict_breast, *models, sweep))
+        print(
+            f"| {name} | {1e3 * statistics.median(single):.1f} | "
+            f"{1e3 * statistics.median(swept) / args.sweep:.1f} |",
+            flush=True,
+        )
 
 
 if __name__ == "__main__":

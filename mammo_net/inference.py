@@ -23,17 +23,25 @@ from numpy.typing import NDArray
 from datamodules.trajectories import Breast
 from fem.atomic import atomic_path
 
+PRECISIONS = ("32-true", "bf16-mixed")
+
 
 def network_predictor(
-    model: torch.nn.Module, batch_size: int = 4096
+    model: torch.nn.Module, batch_size: int = 4096, precision: str = "32-true"
 ) -> Callable[[NDArray], NDArray[np.float32]]:
-    """``(N, T, F) -> (N, T, 3)`` normalised predictions of a sequence model, in batches."""
+    """``(N, T, F) -> (N, T, 3)`` normalised predictions of a sequence model, in batches.
+
+    ``precision="bf16-mixed"`` runs the matrix products in bfloat16 (autocast): 2-3x faster
+    on CPUs with bfloat16 instructions (AVX512-BF16, AMX), much slower on others."""
+    if precision not in PRECISIONS:
+        raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
 
     def predict(features: NDArray) -> NDArray[np.float32]:
         model.eval()
         device = next(model.parameters()).device
         out = []
-        with torch.no_grad():
+        bf16 = precision == "bf16-mixed"
+        with torch.no_grad(), torch.autocast(device.type, torch.bfloat16, enabled=bf16):
             for start in range(0, len(features), batch_size):
                 x = torch.as_tensor(np.array(features[start : start + batch_size]), device=device)
                 out.append(model(x).float().cpu().numpy())  # (B, T, 3)

@@ -15,6 +15,7 @@ thicknesses go through the compression model in one batched call.
 from __future__ import annotations
 
 import csv
+import functools
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -47,10 +48,15 @@ class Surrogate:
     predict: Callable[[NDArray], NDArray[np.float32]]
 
 
-def load_surrogate(path: str | Path, step: str | None = None) -> Surrogate:
+def load_surrogate(
+    path: str | Path, step: str | None = None, row_by_row: bool = False, precision: str = "32-true"
+) -> Surrogate:
     """Load a model file without executing code from it: a Lightning checkpoint (``.ckpt``,
     ``weights_only``), XGBoost JSON/UBJSON (``.json``/``.ubj``) or the forest's arrays
-    (``.npz``).
+    (``.npz``). The trees predict whole node sequences by step intervals
+    (`mammo_net.sequence_trees`); ``row_by_row`` uses their own row-by-row predictions
+    instead (the same values, slower; for benchmarks). ``precision`` of the network:
+    ``"32-true"`` or ``"bf16-mixed"`` (`mammo_net.inference.network_predictor`).
 
     Raises
     ------
@@ -63,18 +69,21 @@ def load_surrogate(path: str | Path, step: str | None = None) -> Surrogate:
         from mammo_net.module import SurrogateModule
 
         model = SurrogateModule.load_from_checkpoint(path, map_location="cpu", weights_only=True)
-        name, schema, predict = "att_blstm", model.schema, network_predictor(model)
+        name, schema, predict = (
+            "att_blstm",
+            model.schema,
+            network_predictor(model, precision=precision),
+        )
     elif path.suffix in (".json", ".ubj"):
         booster = baselines.load_xgboost(path)
         name, schema = "xgboost", baselines.xgboost_schema(booster, str(path))
-        predict = sequence_predictor(
-            from_xgboost(booster), lambda X: baselines.predict_xgboost(booster, X)
-        )
+        rows = functools.partial(baselines.predict_xgboost, booster)
+        predict = sequence_predictor(None if row_by_row else from_xgboost(booster), rows)
     elif path.suffix == ".npz":
         name, schema = "ert", baselines.forest_schema(path)
         forest = baselines.load_forest(path)
         rows = forest.compiled(len(schema.features)) if schema else None
-        predict = sequence_predictor(from_forest(forest), rows)
+        predict = sequence_predictor(None if row_by_row else from_forest(forest), rows)
     else:
         raise ValueError(f"{path}: a model file ends in one of {MODEL_SUFFIXES}")
     if schema is None:

@@ -344,13 +344,14 @@ def _paths_compiled(nodes, thresholds, value, roots, node_values, is_node, colum
 
 
 def sequence_predictor(
-    ens: TreeEnsemble, predict_rows: Callable[[NDArray], NDArray]
+    ens: TreeEnsemble | None, predict_rows: Callable[[NDArray], NDArray]
 ) -> Callable[[NDArray], NDArray[np.float32]]:
     """``(N, T, F) -> (N, T, 3)`` float32 by `predict_sequences`, or row by row with
-    ``predict_rows`` ``(rows, F) -> (rows, 3)`` where the features do not separate."""
+    ``predict_rows`` ``(rows, F) -> (rows, 3)`` where the features do not separate (always,
+    without ``ens``)."""
 
     def predict(features: NDArray) -> NDArray[np.float32]:
-        out = predict_sequences(ens, features)
+        out = None if ens is None else predict_sequences(ens, features)
         if out is None:
             f = np.asarray(features, np.float32)
             out = np.asarray(predict_rows(f.reshape(-1, f.shape[-1]))).reshape(*f.shape[:2], 3)

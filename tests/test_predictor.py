@@ -192,3 +192,13 @@ def test_predict_refuses_bad_requests(models, tmp_path):
         predict.predict(
             _predict_cfg(models, tmp_path, f"input={tmp_path / 'nolat.npz'}", "thickness=0.7")
         )
+
+
+def test_network_precision(models):
+    features = unloaded_features(scheduled_trajectory())[0].transpose(1, 0, 2)
+    fp32 = load_surrogate(models / "unloaded.ckpt").predict(features)
+    bf16 = load_surrogate(models / "unloaded.ckpt", precision="bf16-mixed").predict(features)
+    assert bf16.dtype == np.float32
+    np.testing.assert_allclose(bf16, fp32, atol=0.05)  # normalised coordinates, ~1
+    with pytest.raises(ValueError, match="precision must be one of"):
+        load_surrogate(models / "unloaded.ckpt", precision="16")
