@@ -32,7 +32,7 @@ from fem.simulate import plate_schedule
 from fem.timeseries import write_time_series
 from fem.trajectory import Trajectory
 from mammo_net import baselines
-from mammo_net.inference import network_predictor
+from mammo_net.inference import network_predictor, save_predictions
 from mammo_net.sequence_trees import from_forest, from_xgboost, sequence_predictor
 
 MODEL_SUFFIXES = (".ckpt", ".json", ".ubj", ".npz")
@@ -161,6 +161,37 @@ def predict_breast(
         ratio,
         np.asarray(thicknesses, float),
     )
+
+
+# --- run folders ---------------------------------------------------------------------------
+
+#: The model files of a train.py run folder that `predict_run` predicts with.
+RUN_MODELS = ("checkpoints/best.ckpt", "baselines/xgboost.json", "baselines/ert.npz")
+
+
+def predict_run(run: str | Path) -> list[Path]:
+    """Write the missing ``predictions/<model>.npz`` of a run folder from its model files
+    (`RUN_MODELS`): the validation breasts of the run's split, read from its
+    ``.hydra/config.yaml``. A run kept as model files (the committed cross-validation folds
+    in ``results/``) thus feeds the evaluation report without retraining."""
+    from hydra.utils import instantiate
+    from omegaconf import OmegaConf
+
+    run = Path(run)
+    models = [run / m for m in RUN_MODELS if (run / m).exists()]
+    if not models:
+        return []
+    cfg = OmegaConf.load(run / ".hydra" / "config.yaml")
+    loaded = [load_surrogate(m, str(cfg.data.step)) for m in models]
+    todo = [s for s in loaded if not (run / "predictions" / f"{s.name}.npz").exists()]
+    if not todo:
+        return []
+    dm = instantiate(cfg.data)
+    dm.prepare_data()
+    dm.setup()
+    return [
+        save_predictions(run / "predictions" / f"{s.name}.npz", s.predict, dm.val) for s in todo
+    ]
 
 
 # --- files ---------------------------------------------------------------------------------

@@ -5,8 +5,9 @@ predictions, without retraining.
     python -m mammo_net.report 'runs=[outputs/train/2026-11-23_20-00-00]' out_dir=outputs/report/mine
 
 Every run folder (a ``train.py`` run, or one fold of a ``-m data.fold=0,...,9`` sweep) holds
-``predictions/<model>.npz`` for its validation breasts and its ``.hydra/config.yaml``, which
-says the simulation step, the trajectory folder and the split. Runs of the same split and
+``predictions/<model>.npz`` for its validation breasts, or the model files to predict them
+with (`mammo_net.predictor.predict_run`), and its ``.hydra/config.yaml``, which says the
+simulation step, the trajectory folder and the split. Runs of the same split and
 step are merged (the folds of a cross-validation cover the cohort once) and compared with the
 FE trajectories. ``out_dir`` receives ``report.md`` (every table), ``report.json`` (every
 number), ``per_breast.csv``, ``per_step.csv`` and ``figures/*.png``.
@@ -31,6 +32,7 @@ from fem.trajectory import TISSUE_BIT, NodeFlag, Tissue, Trajectory
 from mammo_net import evaluation as ev
 from mammo_net.inference import load_prediction_seconds, load_predictions
 from mammo_net.metrics import node_rmse, summarize, summarize_breasts
+from mammo_net.predictor import predict_run
 
 #: Pure-tissue node codes (interface nodes, whose code has several bits, are left out).
 TISSUE_CODES = {t.name.lower(): TISSUE_BIT[t] for t in (Tissue.FAT, Tissue.GLAND, Tissue.MUSCLE)}
@@ -124,6 +126,7 @@ def collect(runs: Iterable[str | Path], data_dir: str | Path | None = None) -> l
     evaluations: dict[tuple[str, str], Evaluation] = {}
     for run in folders:
         split, step, own_data = run_settings(run)
+        predict_run(run)  # a run kept as model files: its predictions first
         files = sorted((run / "predictions").glob("*.npz"))
         if not files:
             continue

@@ -6,7 +6,9 @@ import sys
 from pathlib import Path
 
 import lightning as L
+import numpy as np
 import pytest
+import torch
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
@@ -218,15 +220,26 @@ def test_cross_validation_sweeps_feed_the_report(trajectory_folder, tmp_path):
             "callbacks.xgboost.n_estimators=3",
             multirun=True,
         )
-    folds = sorted(p.relative_to(tmp_path) for p in tmp_path.glob("outputs/cv/*/*/fold*"))
+    folds = sorted(p.relative_to(tmp_path) for p in tmp_path.glob("*/cv/*/*/fold*"))
     assert [str(p) for p in folds] == [
-        "outputs/cv/att_blstm/compression/fold0",
-        "outputs/cv/att_blstm/compression/fold1",
         "outputs/cv/xgboost/compression/fold0",
         "outputs/cv/xgboost/compression/fold1",
+        "results/cv/att_blstm/compression/fold0",
+        "results/cv/att_blstm/compression/fold1",
     ]
+    # A fold kept as committed files (weights only, no predictions) is predicted again.
+    fold0 = tmp_path / "results/cv/att_blstm/compression/fold0"
+    assert sorted(p.name for p in (fold0 / "checkpoints").iterdir()) == ["best.ckpt"]
+    assert "optimizer_states" not in torch.load(fold0 / "checkpoints/best.ckpt", weights_only=True)
+    saved = load_predictions(fold0 / "predictions/att_blstm.npz")
+    (fold0 / "predictions/att_blstm.npz").unlink()
     analysis = OmegaConf.load(CONF + "/analysis/default.yaml")
-    out = write_report([tmp_path / "outputs/cv/*/*/fold*"], tmp_path / "report", analysis)
+    runs = [tmp_path / "outputs/cv/*/*/fold*", tmp_path / "results/cv/*/*/fold*"]
+    out = write_report(runs, tmp_path / "report", analysis)
+    again = load_predictions(fold0 / "predictions/att_blstm.npz")
+    assert saved.keys() == again.keys()
+    for name in saved:
+        np.testing.assert_allclose(again[name], saved[name], atol=1e-4)  # mm
     summary = json.loads((out / "report.json").read_text())["summary"]
     # 24 breasts, 10 folds: folds 0 and 1 validate 2 patients (4 breasts) each -> 8 breasts.
     for model in ("att_blstm", "xgboost"):
