@@ -168,7 +168,8 @@ class _StepFeatures:
 
 
 def _step_features(X: NDArray[np.float32]) -> tuple[NDArray[np.bool_], _StepFeatures] | None:
-    """Split the features of ``X`` (S, T, F) into node and step features; None if they do not
+    """Split the features of ``X`` (S, T, F) into node and step features, and the sequences
+    into groups of equal step features (a breast at one thickness); None if they do not
     separate (a feature varying over both nodes and steps, or a non-monotone step feature)."""
     S, T, F = X.shape
     is_node = (X == X[:, :1]).all(axis=(0, 1))  # (F,)
@@ -176,10 +177,15 @@ def _step_features(X: NDArray[np.float32]) -> tuple[NDArray[np.bool_], _StepFeat
     V = X[:, :, steps]  # (S, T, Fs)
     if not len(steps) or (V == V[:1]).all():
         group, unique = np.zeros(S, np.intp), V[:1]
-    else:
-        unique, group = np.unique(V.reshape(S, -1), axis=0, return_inverse=True)
-        unique = unique.reshape(-1, T, len(steps))
-        group = group.reshape(-1)
+    else:  # sequences with equal step features (one breast at one thickness), by a hash
+        bits = (V.reshape(S, -1) + np.float32(0)).view(np.uint32).astype(np.uint64)
+        weights = np.random.default_rng(0).integers(1, 2**63, bits.shape[1], dtype=np.uint64)
+        _, first, group = np.unique(
+            (bits * (weights | np.uint64(1))).sum(axis=1), return_index=True, return_inverse=True
+        )
+        unique, group = V[first], group.reshape(-1)
+        if not (V == unique[group]).all():  # a hash collision (never seen): row by row
+            return None
     d = np.diff(unique, axis=1)  # (G, T-1, Fs)
     rising, falling = (d >= 0).all(axis=1), (d <= 0).all(axis=1)  # (G, Fs)
     if not (rising | falling).all():
