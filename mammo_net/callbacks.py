@@ -33,6 +33,7 @@ class TreeBaseline(Callback):
     def __init__(self, **params: float | int | None) -> None:
         self.params = params
         self.model = None
+        self._predictor = None
         self.results: dict[str, float] = {}
 
     def fit(self, X: np.ndarray, Y: np.ndarray):
@@ -49,14 +50,16 @@ class TreeBaseline(Callback):
 
     def predictor(self):
         """``(N, T, F) -> (N, T, 3)``: whole sequences through the trees (`sequence_trees`),
-        row by row where the features do not separate."""
-        return sequence_predictor(self.ensemble(), self.predict)
+        row by row where the features do not separate; built once per fitted model."""
+        if self._predictor is None:
+            self._predictor = sequence_predictor(self.ensemble(), self.predict)
+        return self._predictor
 
     def on_fit_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         dm = trainer.datamodule
         X, Y = baselines.stack_rows(dm.rows(dm.train))
         t0 = time.perf_counter()
-        self.model = self.fit(X, Y)
+        self.model, self._predictor = self.fit(X, Y), None
         self.results[f"{self.name}/fit_seconds"] = time.perf_counter() - t0
         folder = Path(trainer.default_root_dir) / "baselines"
         self.path = self.save(folder / f"{self.name}{self.suffix}", dm.schema())

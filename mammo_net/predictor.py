@@ -165,8 +165,12 @@ def predict_breast(
 
 # --- run folders ---------------------------------------------------------------------------
 
-#: The model files of a train.py run folder that `predict_run` predicts with.
-RUN_MODELS = ("checkpoints/best.ckpt", "baselines/xgboost.json", "baselines/ert.npz")
+#: The model files of a train.py run folder that `predict_run` predicts with, by model name.
+RUN_MODELS = {
+    "att_blstm": "checkpoints/best.ckpt",
+    "xgboost": "baselines/xgboost.json",
+    "ert": "baselines/ert.npz",
+}
 
 
 def predict_run(run: str | Path) -> list[Path]:
@@ -178,19 +182,24 @@ def predict_run(run: str | Path) -> list[Path]:
     from omegaconf import OmegaConf
 
     run = Path(run)
-    models = [run / m for m in RUN_MODELS if (run / m).exists()]
-    if not models:
-        return []
-    cfg = OmegaConf.load(run / ".hydra" / "config.yaml")
-    loaded = [load_surrogate(m, str(cfg.data.step)) for m in models]
-    todo = [s for s in loaded if not (run / "predictions" / f"{s.name}.npz").exists()]
+    todo = {
+        name: run / file
+        for name, file in RUN_MODELS.items()
+        if (run / file).exists() and not (run / "predictions" / f"{name}.npz").exists()
+    }
     if not todo:
         return []
+    cfg = OmegaConf.load(run / ".hydra" / "config.yaml")
     dm = instantiate(cfg.data)
     dm.prepare_data()
     dm.setup()
     return [
-        save_predictions(run / "predictions" / f"{s.name}.npz", s.predict, dm.val) for s in todo
+        save_predictions(
+            run / "predictions" / f"{name}.npz",
+            load_surrogate(file, str(cfg.data.step)).predict,
+            dm.val,
+        )
+        for name, file in todo.items()
     ]
 
 
