@@ -101,8 +101,7 @@ def test_cross_validation_configs_instantiate(step, cv, tmp_path):
             return_hydra_config=True,
         )
     assert cfg.hydra.sweeper.params["data.fold"].startswith("range(0, 10)")
-    kept = "results" if cv == "cv_att_blstm" else "outputs"  # committed weights vs. rerun
-    assert cfg.hydra.sweep.dir == f"{kept}/cv/{cv[3:]}/{step}"
+    assert cfg.hydra.sweep.dir == f"results/cv/{cv[3:]}/{step}"  # committed model files
     callbacks = [instantiate(c) for c in cfg.callbacks.values() if c and "_target_" in c]
     assert len(callbacks) == 1
     dm, model = instantiate(cfg.data), instantiate(cfg.model)
@@ -223,24 +222,29 @@ def test_cross_validation_sweeps_feed_the_report(trajectory_folder, tmp_path):
         )
     folds = sorted(p.relative_to(tmp_path) for p in tmp_path.glob("*/cv/*/*/fold*"))
     assert [str(p) for p in folds] == [
-        "outputs/cv/xgboost/compression/fold0",
-        "outputs/cv/xgboost/compression/fold1",
         "results/cv/att_blstm/compression/fold0",
         "results/cv/att_blstm/compression/fold1",
+        "results/cv/xgboost/compression/fold0",
+        "results/cv/xgboost/compression/fold1",
     ]
-    # A fold kept as committed files (weights only, no predictions) is predicted again.
+    # A fold kept as committed files (model files, no predictions) is predicted again.
     fold0 = tmp_path / "results/cv/att_blstm/compression/fold0"
     assert sorted(p.name for p in (fold0 / "checkpoints").iterdir()) == ["best.ckpt"]
     assert "optimizer_states" not in torch.load(fold0 / "checkpoints/best.ckpt", weights_only=True)
-    saved = load_predictions(fold0 / "predictions/att_blstm.npz")
-    (fold0 / "predictions/att_blstm.npz").unlink()
+    kept = {
+        model: tmp_path / f"results/cv/{model}/compression/fold0/predictions/{model}.npz"
+        for model in ("att_blstm", "xgboost")
+    }
+    saved = {model: load_predictions(path) for model, path in kept.items()}
+    for path in kept.values():
+        path.unlink()
     analysis = OmegaConf.load(CONF + "/analysis/default.yaml")
-    runs = [tmp_path / "outputs/cv/*/*/fold*", tmp_path / "results/cv/*/*/fold*"]
-    out = write_report(runs, tmp_path / "report", analysis)
-    again = load_predictions(fold0 / "predictions/att_blstm.npz")
-    assert saved.keys() == again.keys()
-    for name in saved:
-        np.testing.assert_allclose(again[name], saved[name], atol=1e-4)  # mm
+    out = write_report([tmp_path / "results/cv/*/*/fold*"], tmp_path / "report", analysis)
+    for model, path in kept.items():
+        again = load_predictions(path)
+        assert saved[model].keys() == again.keys()
+        for name in again:
+            np.testing.assert_allclose(again[name], saved[model][name], atol=1e-4)  # mm
     summary = json.loads((out / "report.json").read_text())["summary"]
     # 24 breasts, 10 folds: folds 0 and 1 validate 2 patients (4 breasts) each -> 8 breasts.
     for model in ("att_blstm", "xgboost"):
