@@ -14,6 +14,7 @@ from itertools import pairwise
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy import stats
 from scipy.optimize import curve_fit
 
 #: Upper edges of the paper's error classes (Fig. 4, 11, 22, 23): 2 mm bins to 22 mm, then > 22.
@@ -111,6 +112,40 @@ def pearson_r(x: NDArray, y: NDArray) -> float:
     if len(x) < 2 or x.std() == 0 or y.std() == 0:
         return float("nan")
     return float(np.corrcoef(x, y)[0, 1])
+
+
+def paired_difference(a: NDArray, b: NDArray) -> dict[str, float]:
+    """Compare two models on the same breasts by their per-breast errors.
+
+    Parameters
+    ----------
+    a, b : (B,)
+        Per-breast RMSE of models A and B on the same breasts, in the same order, mm.
+
+    Returns
+    -------
+    dict
+        ``n``; ``mean_diff`` (mean of a - b, mm) with the Student-t 95 % confidence interval
+        ``ci95_low``, ``ci95_high``; ``relative`` (mean_diff over the mean of b);
+        ``a_better`` (fraction of breasts with a < b); ``wilcoxon_p`` (two-sided signed-rank
+        test of a - b; NaN under two breasts or when every difference is zero).
+    """
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    if a.shape != b.shape or a.ndim != 1:
+        raise ValueError(f"paired errors need equal 1-D shapes, got {a.shape} and {b.shape}")
+    d = a - b
+    n, mean = len(d), float(d.mean()) if len(d) else float("nan")
+    half = float(stats.t.ppf(0.975, n - 1) * d.std(ddof=1) / np.sqrt(n)) if n > 1 else float("nan")
+    p = float(stats.wilcoxon(d).pvalue) if n > 1 and np.any(d != 0) else float("nan")
+    return {
+        "n": n,
+        "mean_diff": mean,
+        "ci95_low": mean - half,
+        "ci95_high": mean + half,
+        "relative": mean / float(b.mean()) if n else float("nan"),
+        "a_better": float(np.mean(d < 0)) if n else float("nan"),
+        "wilcoxon_p": p,
+    }
 
 
 def lognormal_fit(values: NDArray) -> tuple[float, float]:

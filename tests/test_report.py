@@ -159,6 +159,38 @@ def test_common_breasts_pair_the_models(cohort, tmp_path):
         assert s["10_fold_CV_compression"]["second"]["n_breasts"] == 2
 
 
+def test_paired_comparison_of_two_models(cohort, tmp_path):
+    """A second model with error 2 mm everywhere on fold 0's breasts A and B: the first model's
+    per-breast RMSE (1.4, 3) minus (2, 2) -> differences (-0.6, +1), both steps alike."""
+    model = dict(np.load(cohort / "fold0" / "predictions" / "model.npz"))
+    second = {n: v - OFFSETS[n][:, :, None] + 2.0 for n, v in model.items()}
+    np.savez(cohort / "fold0" / "predictions" / "second.npz", **second)
+    analysis = OmegaConf.load(CONF / "analysis" / "default.yaml")
+    analysis.sections = False
+    write_report([cohort / "*"], tmp_path / "report", analysis)
+    paired = json.loads((tmp_path / "report" / "report.json").read_text())["paired"]
+    assert paired["one_fold_unloaded"] == {}
+    half = 12.7062 * np.std([-0.6, 1.0], ddof=1) / np.sqrt(2)  # t(0.975, 1 dof) sd / sqrt(n)
+    for key in ("all_steps", "last_step"):
+        d = paired["10_fold_CV_compression"]["model - second"][key]
+        assert d["n"] == 2
+        np.testing.assert_allclose(
+            [d["mean_diff"], d["ci95_low"], d["ci95_high"], d["relative"], d["a_better"]],
+            [0.2, 0.2 - half, 0.2 + half, 0.1, 0.5],
+            atol=1e-3,
+        )
+        assert d["wilcoxon_p"] == pytest.approx(1.0)  # n = 2: every sign pattern as extreme
+    text = (tmp_path / "report" / "report.md").read_text()
+    assert "| 10-fold CV | compression | model - second | 2 | +0.20 [" in text
+
+
+def test_paired_difference_errors_and_degenerate_cases():
+    with pytest.raises(ValueError, match="equal 1-D shapes"):
+        ev.paired_difference([1.0, 2.0], [1.0])
+    same = ev.paired_difference([1.0, 2.0, 3.0], [1.0, 2.0, 3.0])
+    assert same["mean_diff"] == 0 and np.isnan(same["wilcoxon_p"]) and same["a_better"] == 0
+
+
 def test_report_refuses_a_breast_predicted_twice(cohort):
     second = cohort / "fold1" / "predictions" / "model.npz"
     a = dict(np.load(cohort / "fold0" / "predictions" / "model.npz"))
