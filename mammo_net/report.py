@@ -252,20 +252,17 @@ def volume_correlation(result: ModelResult, truth: dict[str, BreastTruth]) -> fl
 def paired_comparisons(e: Evaluation) -> dict[str, dict[str, dict[str, float]]]:
     """Each pair of models of ``e`` on the breasts both predicted: ``"A - B"`` ->
     ``all_steps`` / ``last_step`` -> `mammo_net.evaluation.paired_difference` of A against B."""
+    per = {m: breast_errors(r, e.truth) for m, r in e.models.items()}
     out = {}
-    for a, b in combinations(sorted(e.models), 2):
-        ea, eb = e.models[a].errors, e.models[b].errors
-        names = sorted(set(ea) & set(eb))
-        if not names:
-            continue
-        out[f"{a} - {b}"] = {
-            "all_steps": ev.paired_difference(
-                [ea[n].mean() for n in names], [eb[n].mean() for n in names]
-            ),
-            "last_step": ev.paired_difference(
-                [ea[n][:, -1].mean() for n in names], [eb[n][:, -1].mean() for n in names]
-            ),
-        }
+    for a, b in combinations(sorted(per), 2):
+        names = sorted(set(per[a]) & set(per[b]))
+        if names:
+            out[f"{a} - {b}"] = {
+                key: ev.paired_difference(
+                    [per[a][n][key] for n in names], [per[b][n][key] for n in names]
+                )
+                for key in ("all_steps", "last_step")
+            }
     return out
 
 
