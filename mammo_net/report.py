@@ -331,6 +331,22 @@ def _table(
     return "\n".join(lines) + "\n"
 
 
+def _paired_table(evaluations: list[Evaluation], paired: dict) -> str:
+    """The paired-comparison table, or a line saying that no split has two models."""
+    rows = [
+        f"| {e.split} | {e.step} | {pair} | {d['all_steps']['n']} | "
+        f"{_paired(d['all_steps'])} | {_paired(d['last_step'])} |\n"
+        for e in evaluations
+        for pair, d in paired[e.slug].items()
+    ]
+    if not rows:
+        return "No split has two models to compare."
+    return (
+        "| split | step | A - B | breasts | all steps | last step |\n"
+        "| --- | --- | --- | --- | --- | --- |\n" + "".join(rows)
+    )
+
+
 def markdown(evaluations: list[Evaluation], numbers: dict, analysis: DictConfig) -> str:
     """Every table of the report, in markdown."""
     s, fits, r = numbers["summary"], numbers["compression_ratio"], analysis.ratio_of_interest
@@ -388,14 +404,7 @@ def markdown(evaluations: list[Evaluation], numbers: dict, analysis: DictConfig)
         "Mean over breasts of the difference of per-breast RMSE [Student-t 95 % confidence "
         "interval] (relative to B's mean); the share of breasts where A's error is lower; "
         "two-sided Wilcoxon signed-rank p.",
-        "| split | step | A - B | breasts | all steps | last step |\n"
-        "| --- | --- | --- | --- | --- | --- |\n"
-        + "".join(
-            f"| {e.split} | {e.step} | {pair} | {d['all_steps']['n']} | "
-            f"{_paired(d['all_steps'])} | {_paired(d['last_step'])} |\n"
-            for e in evaluations
-            for pair, d in numbers["paired"][e.slug].items()
-        ),
+        _paired_table(evaluations, numbers["paired"]),
         "## Time per breast (paper Table 6): FE solve against prediction, median, s\n\n"
         "FE: the solver's wall time recorded in each trajectory. Prediction: cached features "
         "to the node positions of every step, as timed when the predictions were saved.",

@@ -120,6 +120,7 @@ def test_report_numbers_match_hand_computed(cohort, tmp_path):
         "| one-fold | unloaded | model | 3 | (0.50, 0.50) +- 0.00 | (0.50, 0.50) +- 0.00 |" in text
     )
     assert "| 20.0 | 0.0200 | 1,000x |" in text
+    assert "No split has two models to compare." in text  # one model per split here
     rows = (tmp_path / "report" / "per_breast.csv").read_text().splitlines()
     assert len(rows) == 1 + 6 and "10-fold CV,compression,model,P0001_L,3.0000" in rows[2]
     steps = (tmp_path / "report" / "per_step.csv").read_text().splitlines()
