@@ -19,8 +19,8 @@ import hydra
 from hydra.utils import instantiate, to_absolute_path
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-from fem.figures import shapes_sections_png
-from fem.io import file_suffix, is_segmentation, load_breast
+from fem.breasts.figures import shapes_sections_png
+from fem.breasts.io import file_suffix, is_segmentation, load_breast
 from mammo_net.predictor import (
     load_surrogate,
     map_landmarks,

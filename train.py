@@ -19,8 +19,8 @@ import lightning as L
 from hydra.utils import instantiate, to_absolute_path
 from omegaconf import DictConfig
 
-from fem.atomic import atomic_path
 from fem.cohort import run_cohort
+from fem.contract.atomic import atomic_path
 from mammo_net.callbacks import TreeBaseline
 from mammo_net.inference import network_predictor, save_predictions
 from mammo_net.metrics import comparison

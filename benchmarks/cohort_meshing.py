@@ -17,10 +17,10 @@ from pathlib import Path
 
 import numpy as np
 
-from fem.figures import breast_sections_png
-from fem.io import write_mesh
-from fem.mesh import Mesher
-from fem.phantom import PhantomGenerator
+from fem.breasts.figures import breast_sections_png
+from fem.breasts.io import write_mesh
+from fem.breasts.mesh import Mesher
+from fem.breasts.phantom import PhantomGenerator
 
 
 def main() -> None:

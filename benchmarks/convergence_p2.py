@@ -6,13 +6,13 @@ to the wall: a standing, bending-dominated breast-like problem, where volumetric
 most. The load is ramped to 0.25 g (moderate strains) and on to 1 g (large strains). By
 symmetry only the half x >= 0 is meshed, with ``u_x = 0`` on the plane x = 0.
 
-The meshes are nested (`fem.reference.hemisphere`: every level splits each tetrahedron of the
+The meshes are nested (`fem.engine.reference.hemisphere`: every level splits each tetrahedron of the
 previous one into eight, on the same polyhedron), so the only error is the discretisation.
 For each level the script solves
 
 * P1 plain (``averaging="element"``), P1 nodal-averaged (``stabilization=0``) and the
-  production setting (nodal, ``stabilization=0.1``) with `fem.solver.load_ramp`;
-* the Taylor-Hood P2-P1 reference (`fem.reference`, the finest level is the reference) and,
+  production setting (nodal, ``stabilization=0.1``) with `fem.engine.solver.load_ramp`;
+* the Taylor-Hood P2-P1 reference (`fem.engine.reference`, the finest level is the reference) and,
   on the coarser levels, pure P2 displacement, to show how much P2 alone still locks;
 
 and prints markdown tables of the apex sag (-u_y of the vertex at (0, 0, 50), mm) and of the
@@ -41,11 +41,11 @@ from unittest import mock
 import numpy as np
 from scipy.sparse.linalg import splu
 
-import fem.solver
-from fem import reference as ref
-from fem.assembly import HyperelasticBody
-from fem.material import lame_parameters
-from fem.solver import GRAVITY_FORCE_DENSITY, load_ramp, nodal_body_force
+import fem.engine.solver
+from fem.engine import reference as ref
+from fem.engine.assembly import HyperelasticBody
+from fem.engine.material import lame_parameters
+from fem.engine.solver import GRAVITY_FORCE_DENSITY, load_ramp, nodal_body_force
 
 RADIUS = 50.0  # mm
 YOUNG, POISSON = 1100.0, 0.495  # fat, Pa
@@ -91,14 +91,14 @@ def apex_vertex(points: np.ndarray) -> int:
 def splu_without_pivoting(A, permc_spec=None, options=None, **kwargs):
     """`scipy.sparse.linalg.splu` with ``DiagPivotThresh = 0``: no partial pivoting, so the
     symmetric minimum-degree ordering survives. On the level-3 tangents this factorizes in
-    9 s (plain P1) instead of 469 s with `fem.solver`'s default pivoting; Newton's residual
+    9 s (plain P1) instead of 469 s with `fem.engine.solver`'s default pivoting; Newton's residual
     test is unchanged, so the converged solutions are the same."""
     options = {**(options or {}), "SymmetricMode": True, "DiagPivotThresh": 0.0}
     return splu(A, permc_spec=permc_spec, options=options, **kwargs)
 
 
 def solve_p1(level: int, label: str) -> Result:
-    """A P1 variant of `P1_VARIANTS` on the hemisphere of ``level`` (`fem.solver.load_ramp`
+    """A P1 variant of `P1_VARIANTS` on the hemisphere of ``level`` (`fem.engine.solver.load_ramp`
     with `splu_without_pivoting` as its factorization)."""
     averaging, stabilization = P1_VARIANTS[label]
     points, cells = ref.oriented_cells(ref.hemisphere(RADIUS, level, half=True))
@@ -111,7 +111,7 @@ def solve_p1(level: int, label: str) -> Result:
     free[np.isclose(points[:, 2], 0.0)] = False  # clamped to the wall
     free[np.isclose(points[:, 0], 0.0), 0] = False  # symmetry plane
     f = nodal_body_force(body, GRAVITY)
-    with mock.patch.object(fem.solver, "splu", splu_without_pivoting):
+    with mock.patch.object(fem.engine.solver, "splu", splu_without_pivoting):
         x = load_ramp(body, points, free.ravel(), lambda s: s * f, LOAD_FACTORS)
     seconds = time.perf_counter() - start
     u = x - points

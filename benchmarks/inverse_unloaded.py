@@ -22,16 +22,16 @@ from pathlib import Path
 
 import numpy as np
 
-from fem.inverse import (
+from fem.contract.trajectory import Trajectory
+from fem.engine.inverse import (
     InverseError,
     forward,
     inverse_unloaded_state,
     max_node_distance,
     prone_gravity,
 )
-from fem.simulate import PAPER_MATERIALS, chest_wall_free_dofs, unloaded_state
-from fem.solver import SolverError
-from fem.trajectory import Trajectory
+from fem.engine.simulation import PAPER_MATERIALS, chest_wall_free_dofs, unloaded_state
+from fem.engine.solver import SolverError
 
 COHORT = Path("data/cohort/full")
 

@@ -25,7 +25,7 @@ import numba
 import numpy as np
 import torch
 
-from fem.trajectory import Trajectory
+from fem.contract.trajectory import Trajectory
 from mammo_net.predictor import load_surrogate, predict_breast
 
 

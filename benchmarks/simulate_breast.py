@@ -2,7 +2,7 @@
 
     python benchmarks/simulate_breast.py data/cohort/full/P0001_L.npz ... --repeats 5
 
-For each mesh, ``--repeats`` runs of `fem.simulate.Simulation` with the paper's parameters
+For each mesh, ``--repeats`` runs of `fem.engine.simulation.Simulation` with the paper's parameters
 (100 unloaded-state steps, 70 compression steps to the breast's target compression ratio,
 Coulomb friction 0.25, gravity on) in this one process, so on one core. Prints per breast the
 median wall time of each step and of both, the final compression ratio and the volume change,
@@ -15,8 +15,8 @@ import argparse
 import statistics
 from pathlib import Path
 
-from fem.simulate import Simulation, SimulationFailed
-from fem.trajectory import Trajectory
+from fem.contract.trajectory import Trajectory
+from fem.engine.simulation import Simulation, SimulationFailed
 
 
 def main() -> None:

@@ -1,1 +1,1 @@
-"""LightningDataModules over FE trajectories (issue 4)."""
+"""LightningDataModules over FE trajectories."""

@@ -21,8 +21,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from fem.quality import signed_volume
-from fem.trajectory import NodeFlag, Tissue, Trajectory
+from fem.contract.quality import signed_volume
+from fem.contract.trajectory import NodeFlag, Tissue, Trajectory
 
 TISSUES = (Tissue.FAT, Tissue.GLAND, Tissue.MUSCLE)
 
@@ -196,7 +196,7 @@ def compression_inputs(
     traj: Trajectory, unloaded: NDArray, plates: NDArray, compression_ratio: NDArray
 ) -> tuple[NDArray[np.float32], Normalization]:
     """Compression features of a breast mesh from its unloaded shape and the plates' schedule
-    (simulated, or predicted and placed by `fem.simulate.plate_schedule`).
+    (simulated, or predicted and placed by `fem.engine.simulation.plate_schedule`).
 
     Parameters
     ----------

@@ -32,8 +32,8 @@ from datamodules.features import (
     unloaded_features,
 )
 from datamodules.splits import k_folds, one_fold_split
-from fem.atomic import atomic_path
-from fem.trajectory import Trajectory
+from fem.contract.atomic import atomic_path
+from fem.contract.trajectory import Trajectory
 
 STEPS = {"unloaded": unloaded_features, "compression": compression_features}
 

@@ -11,7 +11,7 @@ atomically. The cohort table (``cohort.csv``), report (``cohort.json``) and summ
 (``cohort_summary.png``) are rebuilt from the finished breasts at the end of each run.
 
 With ``simulate=true`` (the default) a second stage then simulates both FE steps on every
-meshed breast (`fem.cohort_simulation`: ``<out_dir>/trajectories/``, equally resumable).
+meshed breast (`fem.breasts.cohort_simulation`: ``<out_dir>/trajectories/``, equally resumable).
 """
 
 from __future__ import annotations
@@ -29,12 +29,12 @@ from hydra.utils import instantiate, to_absolute_path
 from omegaconf import DictConfig
 from tqdm import tqdm
 
-from fem.atomic import atomic_path
-from fem.cohort_simulation import simulate_cohort
-from fem.figures import breast_sections_png, cohort_summary_png
-from fem.io import write_mesh
-from fem.mesh import Mesher
-from fem.phantom import PhantomGenerator
+from fem.breasts.cohort_simulation import simulate_cohort
+from fem.breasts.figures import breast_sections_png, cohort_summary_png
+from fem.breasts.io import write_mesh
+from fem.breasts.mesh import Mesher
+from fem.breasts.phantom import PhantomGenerator
+from fem.contract.atomic import atomic_path
 
 LATERALITIES = ("L", "R")
 

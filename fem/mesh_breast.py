@@ -15,9 +15,9 @@ import hydra
 from hydra.utils import instantiate, to_absolute_path
 from omegaconf import DictConfig, OmegaConf
 
-from fem.figures import breast_sections_png
-from fem.io import is_segmentation, load_breast, read_segmentation, write_mesh
-from fem.mesh import Mesher
+from fem.breasts.figures import breast_sections_png
+from fem.breasts.io import is_segmentation, load_breast, read_segmentation, write_mesh
+from fem.breasts.mesh import Mesher
 
 
 def mesh_breast(cfg: DictConfig) -> Path:

@@ -1,1 +1,1 @@
-"""Lightning models, tree baselines and metrics (the learning pipeline, issue 4)."""
+"""Lightning models, tree baselines and metrics."""

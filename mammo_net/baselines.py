@@ -22,7 +22,7 @@ from sklearn.ensemble import ExtraTreesRegressor
 from sklearn.tree._tree import NODE_DTYPE, Tree
 
 from datamodules.features import FeatureSchema
-from fem.atomic import atomic_path
+from fem.contract.atomic import atomic_path
 
 
 def stack_rows(rows: Iterable[tuple[NDArray, NDArray]]) -> tuple[NDArray, NDArray]:

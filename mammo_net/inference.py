@@ -21,7 +21,7 @@ import torch
 from numpy.typing import NDArray
 
 from datamodules.trajectories import Breast
-from fem.atomic import atomic_path
+from fem.contract.atomic import atomic_path
 
 PRECISIONS = ("32-true", "bf16-mixed")
 

@@ -7,7 +7,7 @@ registration loops.
     shapes.compressed  # (K, T2, N, 3) mm: every recorded step for each thickness
 
 The unloaded-state model maps the imaged mesh to the unloaded shape; the plates are placed on
-that shape as the FE places them (`fem.simulate.plate_schedule`) for each compressed thickness,
+that shape as the FE places them (`fem.engine.simulation.plate_schedule`) for each compressed thickness,
 and the compression model maps the shape and plates to every recorded compression step. All
 thicknesses go through the compression model in one batched call.
 """
@@ -25,12 +25,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from datamodules.features import FeatureSchema, compression_inputs, unloaded_inputs
-from fem.atomic import atomic_path
-from fem.io import write_mesh
-from fem.landmarks import SOURCE_TO_IMAGE_MM, carry, locate, project_cc
-from fem.simulate import plate_schedule
-from fem.timeseries import write_time_series
-from fem.trajectory import Trajectory
+from fem.breasts.io import write_mesh
+from fem.contract.atomic import atomic_path
+from fem.contract.landmarks import SOURCE_TO_IMAGE_MM, carry, locate, project_cc
+from fem.contract.timeseries import write_time_series
+from fem.contract.trajectory import Trajectory
+from fem.engine.simulation import plate_schedule
 from mammo_net import baselines
 from mammo_net.inference import network_predictor, save_predictions
 from mammo_net.sequence_trees import from_forest, from_xgboost, sequence_predictor

@@ -28,8 +28,8 @@ import numpy as np
 from numpy.typing import NDArray
 from omegaconf import DictConfig, OmegaConf
 
-from fem.atomic import atomic_path
-from fem.trajectory import TISSUE_BIT, NodeFlag, Tissue, Trajectory
+from fem.contract.atomic import atomic_path
+from fem.contract.trajectory import TISSUE_BIT, NodeFlag, Tissue, Trajectory
 from mammo_net import evaluation as ev
 from mammo_net.inference import load_prediction_seconds, load_predictions
 from mammo_net.metrics import node_rmse, summarize, summarize_breasts

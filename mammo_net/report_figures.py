@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 from omegaconf import DictConfig
 
-from fem.figures import plt, save_png, shapes_sections_png
-from fem.trajectory import Trajectory
+from fem.breasts.figures import plt, save_png, shapes_sections_png
+from fem.contract.trajectory import Trajectory
 from mammo_net import evaluation as ev
 from mammo_net.inference import load_predictions
 from mammo_net.report import TISSUE_CODES, Evaluation, ranked_breasts, ratio_curve

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fem.mesh import Mesher
-from fem.phantom import LabelVolume, PhantomGenerator
-from fem.trajectory import Tissue, Trajectory
+from fem.breasts.mesh import Mesher
+from fem.breasts.phantom import LabelVolume, PhantomGenerator
+from fem.contract.trajectory import Tissue, Trajectory
 
 
 @pytest.fixture(scope="session")

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 from conftest import assert_exact_derivatives
 
-from fem.assembly import HyperelasticBody, skfem_tangent
-from fem.material import lame_parameters, neo_hookean_pk1
-from fem.mesh import bcc_lattice, boundary_faces, compact_mesh
+from fem.breasts.mesh import bcc_lattice, boundary_faces, compact_mesh
+from fem.engine.assembly import HyperelasticBody, skfem_tangent
+from fem.engine.material import lame_parameters, neo_hookean_pk1
 
 
 @pytest.fixture(scope="module")

@@ -7,7 +7,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 
 from fem.cohort import run_cohort
-from fem.trajectory import Trajectory
+from fem.contract.trajectory import Trajectory
 
 CONF = str(Path(__file__).resolve().parents[1] / "conf")
 

@@ -9,8 +9,8 @@ from hydra import compose, initialize_config_dir
 from test_cohort import CONF, _cfg
 
 from fem.cohort import run_cohort
+from fem.contract.trajectory import NodeFlag, Trajectory
 from fem.simulate import simulate_file
-from fem.trajectory import NodeFlag, Trajectory
 
 FEW_STEPS = ("simulation.unloaded_steps=3", "simulation.compression_steps=4")
 

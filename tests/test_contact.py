@@ -6,11 +6,11 @@ import pytest
 import skfem
 from conftest import assert_exact_derivatives
 
-from fem.assembly import HyperelasticBody, Model
-from fem.contact import RigidPlate, friction_mollifier
-from fem.material import lame_parameters, neo_hookean_pk1, uniaxial_lateral_stretch
-from fem.quality import signed_volume
-from fem.solver import load_ramp
+from fem.contract.quality import signed_volume
+from fem.engine.assembly import HyperelasticBody, Model
+from fem.engine.contact import RigidPlate, friction_mollifier
+from fem.engine.material import lame_parameters, neo_hookean_pk1, uniaxial_lateral_stretch
+from fem.engine.solver import load_ramp
 
 MU, KAPPA = lame_parameters(1100.0, 0.495)
 

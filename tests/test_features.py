@@ -11,7 +11,7 @@ from datamodules.features import (
     compression_features,
     unloaded_features,
 )
-from fem.trajectory import NodeFlag, Trajectory
+from fem.contract.trajectory import NodeFlag, Trajectory
 
 
 @pytest.fixture

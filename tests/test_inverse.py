@@ -8,12 +8,22 @@ import skfem
 from scipy.integrate import quad
 from scipy.optimize import brentq
 
-from fem.inverse import InverseError, check_orientation, inverse_unloaded_state, prone_gravity
-from fem.material import lame_parameters
-from fem.quality import signed_volume
-from fem.simulate import PAPER_MATERIALS, breast_model, chest_wall_free_dofs, unloaded_state
-from fem.solver import GRAVITY_FORCE_DENSITY, load_ramp, nodal_body_force
-from fem.trajectory import NodeFlag, Tissue, Trajectory
+from fem.contract.quality import signed_volume
+from fem.contract.trajectory import NodeFlag, Tissue, Trajectory
+from fem.engine.inverse import (
+    InverseError,
+    check_orientation,
+    inverse_unloaded_state,
+    prone_gravity,
+)
+from fem.engine.material import lame_parameters
+from fem.engine.simulation import (
+    PAPER_MATERIALS,
+    breast_model,
+    chest_wall_free_dofs,
+    unloaded_state,
+)
+from fem.engine.solver import GRAVITY_FORCE_DENSITY, load_ramp, nodal_body_force
 
 FAT_ONLY = {"fat": PAPER_MATERIALS["fat"]}
 
@@ -41,7 +51,7 @@ def hanging_column(width: float = 20.0, length: float = 30.0, n_y: int = 13) -> 
 
 
 def reload(traj: Trajectory, reference: np.ndarray, materials) -> np.ndarray:
-    """``reference`` loaded by prone gravity, ramped from zero (independent of fem.inverse)."""
+    """``reference`` loaded by prone gravity, ramped from zero (independent of fem.engine.inverse)."""
     moved = replace(traj, points=reference)
     model = breast_model(moved, materials)
     free = chest_wall_free_dofs(traj).ravel()

@@ -4,9 +4,9 @@ import nrrd
 import numpy as np
 import pytest
 
-from fem.io import load_breast, read_mesh, read_segmentation, write_mesh
-from fem.mesh import Mesher
-from fem.trajectory import Tissue, Trajectory
+from fem.breasts.io import load_breast, read_mesh, read_segmentation, write_mesh
+from fem.breasts.mesh import Mesher
+from fem.contract.trajectory import Tissue, Trajectory
 
 USER_LABELS = {"background": 0, "fat": 10, "gland": [20, 21], "muscle": 30}
 

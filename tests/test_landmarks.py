@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from fem.landmarks import carry, locate, project_cc
+from fem.contract.landmarks import carry, locate, project_cc
 
 
 def test_landmarks_follow_an_affine_deformation_exactly(breast_mesh):

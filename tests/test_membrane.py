@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from conftest import assert_exact_derivatives
 
-from fem.membrane import SkinMembrane
+from fem.engine.membrane import SkinMembrane
 
 
 def test_force_and_tangent_are_derivatives(breast_mesh):

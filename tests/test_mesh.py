@@ -2,10 +2,10 @@ import numpy as np
 import pytest
 import skfem
 
-from fem.mesh import Mesher, bcc_lattice, boundary_faces
-from fem.phantom import PhantomGenerator
-from fem.quality import dihedral_angles, radius_ratio, signed_volume
-from fem.trajectory import TISSUE_BIT, NodeFlag, Tissue
+from fem.breasts.mesh import Mesher, bcc_lattice, boundary_faces
+from fem.breasts.phantom import PhantomGenerator
+from fem.contract.quality import dihedral_angles, radius_ratio, signed_volume
+from fem.contract.trajectory import TISSUE_BIT, NodeFlag, Tissue
 
 
 def test_bcc_lattice_congruent_positive():
@@ -96,7 +96,7 @@ def test_target_elements_configurable(ellipsoid_volume):
 
 
 def test_volume_without_breast_labels(ellipsoid_volume):
-    from fem.phantom import LabelVolume
+    from fem.breasts.phantom import LabelVolume
 
     only_muscle = LabelVolume(
         np.where(ellipsoid_volume.labels == 3, 3, 0).astype(np.uint8),

@@ -1,8 +1,13 @@
 import numpy as np
 import pytest
 
-from fem.phantom import DENSITY_RANGES, PhantomGenerator, density_category, profile_area_factor
-from fem.trajectory import Tissue
+from fem.breasts.phantom import (
+    DENSITY_RANGES,
+    PhantomGenerator,
+    density_category,
+    profile_area_factor,
+)
+from fem.contract.trajectory import Tissue
 
 
 def test_same_seed_same_volume(generator):
@@ -90,7 +95,7 @@ def test_bad_laterality(generator):
 
 
 def test_compression_quantile_inverts_distribution():
-    from fem.phantom import COMPRESSION_RANGE, SITES, compression_quantile
+    from fem.breasts.phantom import COMPRESSION_RANGE, SITES, compression_quantile
 
     site = SITES[1]
     assert compression_quantile(site, 0.0) == pytest.approx(COMPRESSION_RANGE[0])

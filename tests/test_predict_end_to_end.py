@@ -14,7 +14,7 @@ from test_predictor import _predict_cfg
 import predict
 from datamodules.trajectories import TrajectoryDataModule
 from fem.cohort import run_cohort
-from fem.trajectory import Trajectory
+from fem.contract.trajectory import Trajectory
 from mammo_net import baselines
 
 TINY = ("mesher.target_elements=700", "mesher.tolerance=200", "figures=false")

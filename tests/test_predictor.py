@@ -16,9 +16,9 @@ from hydra import compose, initialize_config_dir
 import predict
 from datamodules.features import FeatureSchema, compression_features, unloaded_features
 from datamodules.trajectories import TrajectoryDataModule
-from fem.io import write_mesh
-from fem.simulate import plate_schedule
-from fem.trajectory import NodeFlag
+from fem.breasts.io import write_mesh
+from fem.contract.trajectory import NodeFlag
+from fem.engine.simulation import plate_schedule
 from mammo_net import baselines
 from mammo_net.module import SurrogateModule
 from mammo_net.predictor import load_surrogate, predict_breast

@@ -4,11 +4,11 @@ import numpy as np
 import pytest
 import skfem
 
-from fem import reference as ref
-from fem.assembly import HyperelasticBody
-from fem.material import lame_parameters, uniaxial_lateral_stretch
-from fem.quality import signed_volume
-from fem.solver import GRAVITY_FORCE_DENSITY, load_ramp, nodal_body_force
+from fem.contract.quality import signed_volume
+from fem.engine import reference as ref
+from fem.engine.assembly import HyperelasticBody
+from fem.engine.material import lame_parameters, uniaxial_lateral_stretch
+from fem.engine.solver import GRAVITY_FORCE_DENSITY, load_ramp, nodal_body_force
 
 MU, KAPPA = (float(v) for v in lame_parameters(1100.0, 0.495))
 FORMULATIONS = ["taylor-hood", "p2"]

@@ -3,8 +3,9 @@
 import numpy as np
 import pytest
 
-from fem.quality import signed_volume
-from fem.simulate import (
+from fem.contract.quality import signed_volume
+from fem.contract.trajectory import NodeFlag, Tissue
+from fem.engine.simulation import (
     PAPER_MATERIALS,
     Material,
     chest_wall_free_dofs,
@@ -12,7 +13,6 @@ from fem.simulate import (
     element_moduli,
     unloaded_state,
 )
-from fem.trajectory import NodeFlag, Tissue
 
 
 @pytest.fixture(scope="module")
@@ -106,7 +106,7 @@ def test_clamped_nodes_instead_of_the_chest_wall(breast_mesh, tmp_path):
     clamped nodes."""
     from dataclasses import replace
 
-    from fem.simulate import Simulation
+    from fem.engine.simulation import Simulation
 
     wall = breast_mesh.flagged(NodeFlag.MUSCLE_INTERFACE)
     bare = replace(

@@ -2,7 +2,7 @@ import math
 
 from matplotlib.image import imread
 
-from fem.figures import simulation_summary_png
+from fem.breasts.figures import simulation_summary_png
 
 
 def _row(name, status, volume, t1, t2, ratio, reason=""):

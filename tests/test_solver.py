@@ -5,10 +5,10 @@ import pytest
 import skfem
 from scipy import sparse
 
-from fem.assembly import HyperelasticBody
-from fem.material import lame_parameters, neo_hookean_pk1, uniaxial_lateral_stretch
-from fem.quality import signed_volume
-from fem.solver import (
+from fem.contract.quality import signed_volume
+from fem.engine.assembly import HyperelasticBody
+from fem.engine.material import lame_parameters, neo_hookean_pk1, uniaxial_lateral_stretch
+from fem.engine.solver import (
     GRAVITY_FORCE_DENSITY,
     NewtonSettings,
     ReusedFactorization,

@@ -2,8 +2,8 @@ import meshio
 import numpy as np
 import pytest
 
-from fem.timeseries import write_time_series
-from fem.trajectory import Trajectory
+from fem.contract.timeseries import write_time_series
+from fem.contract.trajectory import Trajectory
 
 
 def _tiny(t1: int, t2: int) -> Trajectory:

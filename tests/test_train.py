@@ -16,7 +16,7 @@ from omegaconf import OmegaConf
 import train
 from datamodules.features import FeatureSchema
 from datamodules.trajectories import TrajectoryDataModule
-from fem.trajectory import Trajectory
+from fem.contract.trajectory import Trajectory
 from mammo_net.baselines import forest_schema, load_xgboost, xgboost_schema
 from mammo_net.inference import load_predictions
 from mammo_net.metrics import breast_rmse, comparison

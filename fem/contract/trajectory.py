@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from fem.atomic import atomic_path
+from fem.contract.atomic import atomic_path
 
 SCHEMA_VERSION = 1
 

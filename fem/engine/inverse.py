@@ -1,6 +1,6 @@
 """The inverse unloaded state: the stress-free shape that prone gravity deforms into the image.
 
-`fem.simulate.unloaded_state` estimates the unloaded shape by the simple reversal: the imaged
+`fem.engine.simulation.unloaded_state` estimates the unloaded shape by the simple reversal: the imaged
 (prone, gravity-loaded) shape is taken as stress-free and a posterior body force is applied.
 That is only a first-order estimate, because the imaged shape is not stress-free. The true
 unloaded shape ``X`` solves the inverse problem ``forward(X) = x_img``, where ``forward(X)`` is
@@ -33,10 +33,17 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from fem.assembly import Model
-from fem.quality import signed_volume
-from fem.simulate import AP_AXIS, PAPER_MATERIALS, Material, breast_model, chest_wall_free_dofs
-from fem.solver import (
+from fem.contract.quality import signed_volume
+from fem.contract.trajectory import Trajectory
+from fem.engine.assembly import Model
+from fem.engine.simulation import (
+    AP_AXIS,
+    PAPER_MATERIALS,
+    Material,
+    breast_model,
+    chest_wall_free_dofs,
+)
+from fem.engine.solver import (
     DEFAULT_NEWTON,
     GRAVITY_FORCE_DENSITY,
     NewtonSettings,
@@ -44,7 +51,6 @@ from fem.solver import (
     load_ramp,
     nodal_body_force,
 )
-from fem.trajectory import Trajectory
 
 #: Load-increment halvings allowed when continuing from a guess before the full ramp is used.
 CONTINUATION_CUTBACKS = 2
@@ -214,7 +220,7 @@ def inverse_unloaded_state(
     traj : Trajectory
         Mesh whose ``points`` (N, 3) are the imaged prone shape ``x_img``, mm.
     materials : mapping
-        Tissue parameters (as for `fem.simulate.unloaded_state`; ``"skin"`` adds the membrane).
+        Tissue parameters (as for `fem.engine.simulation.unloaded_state`; ``"skin"`` adds the membrane).
     tolerance : float
         Converged when no node of ``forward(X)`` is farther than this from ``x_img``, mm.
     max_iterations : int

@@ -19,11 +19,11 @@ import meshio
 import numpy as np
 from numpy.typing import NDArray
 
-from fem.atomic import atomic_path
-from fem.mesh import Mesher, annotate
-from fem.phantom import LabelVolume
-from fem.quality import signed_volume
-from fem.trajectory import Tissue, Trajectory
+from fem.breasts.mesh import Mesher, annotate
+from fem.breasts.phantom import LabelVolume
+from fem.contract.atomic import atomic_path
+from fem.contract.quality import signed_volume
+from fem.contract.trajectory import Tissue, Trajectory
 
 SEGMENTATION_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".nhdr", ".npy", ".npz")
 

@@ -14,8 +14,8 @@ import meshio
 import numpy as np
 from numpy.typing import NDArray
 
-from fem.atomic import atomic_path
-from fem.trajectory import Trajectory
+from fem.contract.atomic import atomic_path
+from fem.contract.trajectory import Trajectory
 
 
 def time_steps(traj: Trajectory) -> list[tuple[str, int, NDArray[np.float64]]]:

@@ -14,10 +14,10 @@ from matplotlib.collections import PolyCollection
 from matplotlib.colors import ListedColormap
 from numpy.typing import NDArray
 
-from fem.atomic import atomic_path
-from fem.phantom import LabelVolume
-from fem.quality import EDGES
-from fem.trajectory import Trajectory
+from fem.breasts.phantom import LabelVolume
+from fem.contract.atomic import atomic_path
+from fem.contract.quality import EDGES
+from fem.contract.trajectory import Trajectory
 
 #: Colours of background, fat, gland, muscle (as the paper: light fat, dark gland).
 TISSUE_COLOURS = ["#ffffff", "#f6d8a8", "#1f4e9c", "#b5413b"]

@@ -29,9 +29,9 @@ from numpy.typing import NDArray
 from scipy import ndimage, sparse
 from scipy.sparse import csgraph
 
-from fem.phantom import LabelVolume
-from fem.quality import check_cells, quality_report, radius_ratio, signed_volume
-from fem.trajectory import TISSUE_BIT, NodeFlag, Tissue, Trajectory
+from fem.breasts.phantom import LabelVolume
+from fem.contract.quality import check_cells, quality_report, radius_ratio, signed_volume
+from fem.contract.trajectory import TISSUE_BIT, NodeFlag, Tissue, Trajectory
 
 #: Fixed barycentric sample points (64 per element, uniform in the tetrahedron).
 _SAMPLES = np.random.default_rng(20261123).dirichlet(np.ones(4), size=64)

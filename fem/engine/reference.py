@@ -1,6 +1,6 @@
-"""Reference finite-strain solver on quadratic tetrahedra, for verifying `fem.assembly`.
+"""Reference finite-strain solver on quadratic tetrahedra, for verifying `fem.engine.assembly`.
 
-The same decoupled neo-Hookean law as the production engine (`fem.material`),
+The same decoupled neo-Hookean law as the production engine (`fem.engine.material`),
 
     psi(F) = mu/2 (J^(-2/3) I1 - 3) + K/2 (J - 1)^2,
 
@@ -45,8 +45,8 @@ from numpy.typing import ArrayLike, NDArray
 from scipy import sparse
 from scipy.sparse.linalg import LinearOperator, gmres, splu
 
-from fem.material import isochoric_pk1, isochoric_tangent
-from fem.quality import signed_volume
+from fem.contract.quality import signed_volume
+from fem.engine.material import isochoric_pk1, isochoric_tangent
 
 FORMULATIONS = ("taylor-hood", "p2")
 
@@ -96,7 +96,7 @@ def hemisphere(radius: float = 50.0, level: int = 0, half: bool = False) -> skfe
 
 def oriented_cells(mesh: skfem.MeshTet) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
     """Points ``(N, 3)`` (mm) and cells ``(E, 4)`` of ``mesh`` with every cell positively
-    oriented (`fem.quality.signed_volume` > 0), as `fem.assembly.HyperelasticBody` needs."""
+    oriented (`fem.contract.quality.signed_volume` > 0), as `fem.engine.assembly.HyperelasticBody` needs."""
     points = np.ascontiguousarray(mesh.p.T, dtype=float)
     cells = np.ascontiguousarray(mesh.t.T, dtype=np.int64)
     negative = signed_volume(points, cells) < 0

@@ -28,7 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import integrate, ndimage
 
-from fem.trajectory import Tissue
+from fem.contract.trajectory import Tissue
 
 DENSITY_CATEGORIES = ("a", "b", "c", "d")
 

@@ -20,7 +20,7 @@ from scipy import sparse
 from scipy.linalg import lu_factor, lu_solve
 from scipy.sparse.linalg import LinearOperator, cg, splu
 
-from fem.assembly import HyperelasticBody, Model
+from fem.engine.assembly import HyperelasticBody, Model
 
 #: Body force of gravity for water-like tissue: rho g = 1000 kg/m^3 * 9.81 m/s^2 = 9.81e-6 N/mm^3,
 #: i.e. 9.81 in the solver's force unit (Pa mm^2 = 1e-6 N) per mm^3.

@@ -23,11 +23,11 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from fem.atomic import atomic_path
-from fem.figures import simulation_summary_png
-from fem.simulate import Simulation, SimulationFailed
-from fem.timeseries import write_time_series
-from fem.trajectory import Trajectory
+from fem.breasts.figures import simulation_summary_png
+from fem.contract.atomic import atomic_path
+from fem.contract.timeseries import write_time_series
+from fem.contract.trajectory import Trajectory
+from fem.engine.simulation import Simulation, SimulationFailed
 
 COLUMNS = (
     "name",

@@ -7,7 +7,7 @@ when the moduli are in Pa, whatever the length unit):
 
 with the shear modulus ``mu`` and bulk modulus ``K`` from Young's modulus and Poisson's ratio
 (`lame_parameters`). The isochoric part is evaluated per element; the volumetric part per node
-on volume-averaged J in the element formulation (`fem.assembly`), which is why the two parts
+on volume-averaged J in the element formulation (`fem.engine.assembly`), which is why the two parts
 have separate functions here.
 
 Arrays of deformation gradients have shape (..., 3, 3); results keep the leading shape.
@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from fem.tensor import determinant, inverse
+from fem.engine.tensor import determinant, inverse
 
 
 def lame_parameters(young: NDArray | float, poisson: NDArray | float) -> tuple[NDArray, NDArray]:

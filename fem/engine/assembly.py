@@ -16,7 +16,7 @@ and tangent follow by differentiation and the tangent is symmetric:
     B   = diag(1/V_p) S dJ/dx      (row p: the gradient of Jbar_p).
 
 The element blocks are scattered into a fixed sparsity pattern with ``np.bincount`` (the
-"hand-vectorised kernel"); `fem.assembly.skfem_tangent` is the scikit-fem reference it is
+"hand-vectorised kernel"); `fem.engine.assembly.skfem_tangent` is the scikit-fem reference it is
 tested against.
 """
 
@@ -29,7 +29,8 @@ import skfem
 from numpy.typing import NDArray
 from scipy import sparse
 
-from fem.material import (
+from fem.contract.quality import signed_volume
+from fem.engine.material import (
     isochoric_energy,
     isochoric_pk1,
     isochoric_tangent,
@@ -37,8 +38,7 @@ from fem.material import (
     volumetric_pressure,
     volumetric_stiffness,
 )
-from fem.quality import signed_volume
-from fem.tensor import cofactor, determinant, inverse
+from fem.engine.tensor import cofactor, determinant, inverse
 
 
 def shape_gradients(

@@ -5,7 +5,7 @@ chest-side edge, ``y >= chest_edge``. The body lies above a lower plate (``side 
 below an upper plate (``side = -1``).
 
 Normal contact is a *bound* on the z coordinate of each candidate node the plate covers,
-``side (z - height) >= 0``: the Newton solver (`fem.solver.newton`) projects its iterates onto
+``side (z - height) >= 0``: the Newton solver (`fem.engine.solver.newton`) projects its iterates onto
 the bounds and holds a node on the plate while the plate pushes it (an active set with the
 sign of the multiplier checked every iteration). There is no penalty: nodes never penetrate and
 the tangent is not polluted by penalty stiffness. The contact force of a node is the multiplier
