@@ -221,7 +221,7 @@ def compression_inputs(
     ValueError
         The metadata has no laterality.
     """
-    source = str(traj.metadata.get("source", "trajectory"))
+    source = traj.source
     laterality = traj.metadata.get("laterality")
     if laterality not in LATERALITY:
         raise ValueError(
@@ -282,7 +282,7 @@ def compression_features(
     ValueError
         The breast has no unloaded state, or its metadata no laterality.
     """
-    source = str(traj.metadata.get("source", "trajectory"))
+    source = traj.source
     if not len(traj.unloaded) or not len(traj.compressed):
         raise ValueError(f"{source}: not simulated (fields 'unloaded'/'compressed' are empty)")
     features, norm = compression_inputs(

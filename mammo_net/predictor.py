@@ -133,7 +133,7 @@ def predict_breast(
         A thickness is not below the unloaded breast's cranio-caudal extent, or models of the
         wrong step.
     """
-    source = str(traj.metadata.get("source", "mesh"))
+    source = traj.source
     compression.schema.check("compression", f"{source}: compression model {compression.name}")
     if unloaded is None:
         if not len(traj.unloaded):

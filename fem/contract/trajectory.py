@@ -116,6 +116,11 @@ class Trajectory:
     def n_cells(self) -> int:
         return len(self.cells)
 
+    @property
+    def source(self) -> str:
+        """Where the breast came from (``metadata["source"]``, a file name), for messages."""
+        return str(self.metadata.get("source", "mesh"))
+
     def flagged(self, flag: NodeFlag) -> NDArray[np.int64]:
         """Indices of the nodes carrying ``flag``."""
         return np.flatnonzero(self.node_flags & flag)

@@ -116,7 +116,7 @@ def check_orientation(traj: Trajectory, reference: NDArray, iteration: int) -> N
     volume = signed_volume(reference, traj.cells)
     bad = int((volume <= 0).sum())
     if bad:
-        source = str(traj.metadata.get("source", "mesh"))
+        source = traj.source
         raise InverseError(
             f"{source}: the unloaded-shape iterate X_{iteration} inverts {bad} of {len(volume)} "
             f"elements (smallest signed volume {volume.min():.3g} mm^3); the fixed point diverges "
@@ -246,7 +246,7 @@ def inverse_unloaded_state(
     """
     if relaxation not in ("aitken", "none"):
         raise ValueError(f"relaxation must be 'aitken' or 'none', got {relaxation!r}")
-    source = str(traj.metadata.get("source", "mesh"))
+    source = traj.source
     target = np.asarray(traj.points, float)
     # One boundary-condition mask for all iterates: interface nodes fixed in y, load-free pins
     # chosen on the imaged shape. Fixed DOFs never move, so they stay at their imaged values.

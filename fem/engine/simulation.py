@@ -175,7 +175,7 @@ def unloaded_state(
         Node positions, mm, at load factors ``1/n_steps, 2/n_steps, ..., 1``.
     """
     model = breast_model(traj, materials, averaging)
-    source = str(traj.metadata.get("source", "mesh"))
+    source = traj.source
     free = boundary_free_dofs(traj, source, fixed, translations=(0, 2)).ravel()
     direction = np.zeros(3)
     direction[AP_AXIS] = -1.0  # posterior: undo the anterior pull of prone gravity
@@ -188,7 +188,7 @@ def breast_model(
     traj: Trajectory, materials: Mapping[str, Material], averaging: str = "nodal"
 ) -> Model:
     """The tissue body and, when ``materials`` has ``"skin"``, the skin membrane on ``traj.skin``."""
-    source = str(traj.metadata.get("source", "mesh"))
+    source = traj.source
     mu, kappa = element_moduli(traj.tissue, materials, source)
     stabilization = VOLUMETRIC_STABILIZATION if averaging == "nodal" else 0.0
     body = HyperelasticBody(traj.points, traj.cells, mu, kappa, averaging, stabilization)
@@ -253,7 +253,7 @@ def plate_schedule(
     """
     skin_z = start[traj.flagged(NodeFlag.SKIN), 2]
     bottom, top = float(skin_z.min()), float(skin_z.max())
-    _check_thickness(compressed_thickness, top - bottom, str(traj.metadata.get("source", "mesh")))
+    _check_thickness(compressed_thickness, top - bottom, traj.source)
     if fixed is None:  # the plates reach back to the (sliding) chest wall
         edge = float(start[traj.flagged(NodeFlag.MUSCLE_INTERFACE), AP_AXIS].min())
     else:  # ... or stop in front of the clamped nodes, which they could only crush
@@ -284,7 +284,7 @@ def compression(
     Coulomb coefficient ``friction`` (0: frictionless). ``fixed`` as in `unloaded_state`
     (the plate edges are then at the most anterior clamped node).
     """
-    source = str(traj.metadata.get("source", "mesh"))
+    source = traj.source
     schedule = plate_schedule(traj, start, compressed_thickness, fixed)
     moved = replace(traj, points=np.asarray(start, float))
     model = breast_model(moved, materials, averaging)
@@ -398,7 +398,7 @@ class Simulation:
             return float(self.compression_ratio)
         if "target_compression_ratio" not in traj.metadata:
             raise ValueError(
-                f"{traj.metadata.get('source', 'mesh')}: no compression ratio: set "
+                f"{traj.source}: no compression ratio: set "
                 "simulation.compression_ratio or metadata field 'target_compression_ratio'"
             )
         return float(traj.metadata["target_compression_ratio"])
@@ -413,7 +413,7 @@ class Simulation:
         ValueError
             Bad input (missing material, no interface nodes, no compression ratio).
         """
-        source = str(traj.metadata.get("source", "mesh"))
+        source = traj.source
         ratio = self.target_ratio(traj)
         fixed = None
         if self.fixed_nodes is not None:
