@@ -12,3 +12,8 @@
 
 docs/architecture.md maps the whole project.
 """
+
+from pathlib import Path
+
+#: The Hydra configs (``conf/``), absolute: the console entry points run from anywhere.
+CONFIG_DIR = str(Path(__file__).resolve().parents[1] / "conf")

@@ -29,6 +29,7 @@ from hydra.utils import instantiate, to_absolute_path
 from omegaconf import DictConfig
 from tqdm import tqdm
 
+from fem import CONFIG_DIR
 from fem.breasts.cohort_simulation import simulate_cohort
 from fem.breasts.figures import breast_sections_png, cohort_summary_png
 from fem.breasts.io import write_mesh
@@ -277,7 +278,7 @@ def run_cohort(cfg: DictConfig) -> dict:
     return report
 
 
-@hydra.main(config_path="../conf", config_name="cohort", version_base="1.3")
+@hydra.main(config_path=CONFIG_DIR, config_name="cohort", version_base="1.3")
 def main(cfg: DictConfig) -> None:
     report = run_cohort(cfg)
     if report["failures"]:

@@ -13,7 +13,7 @@ from fem.breasts.figures import plt, save_png, shapes_sections_png
 from fem.contract.trajectory import Trajectory
 from mammo_net import evaluation as ev
 from mammo_net.inference import load_predictions
-from mammo_net.report import TISSUE_CODES, Evaluation, ranked_breasts, ratio_curve
+from mammo_net.report_data import TISSUE_CODES, Evaluation, ranked_breasts, ratio_curve
 
 COLOURS = {"att_blstm": "#d62728", "xgboost": "#1f77b4", "ert": "#2ca02c"}
 

@@ -10,7 +10,8 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from mammo_net import evaluation as ev
-from mammo_net.report import collect, write_report
+from mammo_net.report import write_report
+from mammo_net.report_data import collect
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
 

@@ -1,0 +1,161 @@
+"""The report's data: each breast's FE truth and each model's node errors, merged by
+(split, step) from run folders (`collect`); the types the tables (`mammo_net.report`) and the
+figures (`mammo_net.report_figures`) share.
+"""
+
+from __future__ import annotations
+
+import glob
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+from omegaconf import OmegaConf
+
+from fem.contract.trajectory import TISSUE_BIT, NodeFlag, Tissue, Trajectory
+from mammo_net import evaluation as ev
+from mammo_net.inference import load_prediction_seconds, load_predictions
+from mammo_net.metrics import node_rmse
+from mammo_net.predictor import predict_run
+
+#: Pure-tissue node codes (interface nodes, whose code has several bits, are left out).
+TISSUE_CODES = {t.name.lower(): TISSUE_BIT[t] for t in (Tissue.FAT, Tissue.GLAND, Tissue.MUSCLE)}
+
+
+@dataclass
+class BreastTruth:
+    """What the report needs of one simulated breast for one step."""
+
+    name: str
+    positions: NDArray[np.float64]  # (N, T, 3) FE node positions per recorded step, mm
+    tissue_code: NDArray[np.uint8]  # (N,) paper's Table 2 code
+    surface: NDArray[np.bool_]  # (N,) skin nodes
+    compression_ratio: NDArray[np.float64] | None  # (T,) compression step only
+    volume_cm3: float
+    fe_seconds: float  # the FE solver's wall time for this step, s
+    path: Path
+
+
+@dataclass
+class ModelResult:
+    """One model's predictions of one step in one split, as node errors per breast."""
+
+    model: str
+    errors: dict[str, NDArray[np.float32]] = field(default_factory=dict)  # name -> (N, T) mm
+    seconds: dict[str, float] = field(default_factory=dict)  # name -> prediction time, s
+    sources: dict[str, Path] = field(default_factory=dict)  # name -> predictions file
+
+
+@dataclass
+class Evaluation:
+    """All models of one (split, step): the breasts' truth and each model's errors."""
+
+    split: str
+    step: str
+    truth: dict[str, BreastTruth]
+    models: dict[str, ModelResult]
+
+    @property
+    def label(self) -> str:
+        return f"{self.split}, {self.step}"
+
+    @property
+    def slug(self) -> str:
+        return f"{self.split}_{self.step}".replace(" ", "_").replace("-", "_")
+
+
+def load_truth(path: Path, step: str) -> BreastTruth:
+    """The FE positions of ``step`` and the node facts of the trajectory file ``path``."""
+    traj = Trajectory.load(path)
+    positions = traj.compressed if step == "compression" else traj.unloaded
+    if not len(positions):
+        raise ValueError(f"{path}: field {step!r} has no simulated steps")
+    seconds = traj.metadata.get("simulation", {}).get("seconds", {}).get(step, float("nan"))
+    return BreastTruth(
+        name=path.stem,
+        positions=positions.transpose(1, 0, 2),
+        tissue_code=traj.node_tissue_code,
+        surface=(traj.node_flags & NodeFlag.SKIN) > 0,
+        compression_ratio=traj.compression_ratio if step == "compression" else None,
+        volume_cm3=float(traj.metadata.get("breast_volume_cm3", float("nan"))),
+        fe_seconds=float(seconds),
+        path=path,
+    )
+
+
+def run_settings(run: Path) -> tuple[str, str, Path]:
+    """(split label, step, trajectory folder) of a run folder, from its ``.hydra/config.yaml``."""
+    config = run / ".hydra" / "config.yaml"
+    if not config.exists():
+        raise FileNotFoundError(f"{config}: not found; is {run} a train.py run folder?")
+    data = OmegaConf.load(config).data
+    split = data.get("split") or ("k_fold" if data.get("fold") is not None else "one_fold")
+    label = f"{data.n_folds}-fold CV" if split == "k_fold" else "one-fold"
+    return label, str(data.step), Path(str(data.data_dir))
+
+
+def collect(runs: Iterable[str | Path], data_dir: str | Path | None = None) -> list[Evaluation]:
+    """Merge the predictions of run folders by (split, step) and score them against the FE.
+
+    Parameters
+    ----------
+    runs
+        Run folders (glob patterns allowed) holding ``predictions/<model>.npz``.
+    data_dir
+        The trajectory folder; by default each run's own ``data.data_dir``.
+    """
+    folders = [Path(p) for pattern in runs for p in sorted(glob.glob(str(pattern)))]
+    if not folders:
+        raise FileNotFoundError(f"no run folder matches {list(runs)}")
+    evaluations: dict[tuple[str, str], Evaluation] = {}
+    for run in folders:
+        split, step, own_data = run_settings(run)
+        predict_run(run)  # a run kept as model files: its predictions first
+        files = sorted((run / "predictions").glob("*.npz"))
+        if not files:
+            continue
+        folder = Path(data_dir) if data_dir is not None else own_data
+        e = evaluations.setdefault((split, step), Evaluation(split, step, {}, {}))
+        for file in files:
+            result = e.models.setdefault(file.stem, ModelResult(file.stem))
+            seconds = load_prediction_seconds(file)
+            for name, prediction in load_predictions(file).items():
+                if name in result.errors:
+                    raise ValueError(
+                        f"{file}: breast {name} was already predicted in {result.sources[name]}"
+                    )
+                if name not in e.truth:
+                    e.truth[name] = load_truth(folder / f"{name}.npz", step)
+                truth = e.truth[name].positions
+                if prediction.shape != truth.shape:
+                    raise ValueError(
+                        f"{file}: field {name!r} has shape {prediction.shape}, the FE "
+                        f"trajectory {truth.shape}"
+                    )
+                result.errors[name] = node_rmse(prediction, truth).astype(np.float32)
+                result.sources[name] = file
+                if name in seconds:
+                    result.seconds[name] = seconds[name]
+    if not evaluations:
+        raise FileNotFoundError(f"no predictions/*.npz in {[str(f) for f in folders]}")
+    return sorted(evaluations.values(), key=lambda e: (e.split, e.step))
+
+
+def ratio_curve(
+    result: ModelResult, truth: dict[str, BreastTruth], width: float
+) -> tuple[NDArray, NDArray, NDArray]:
+    """Mean breast RMSE per compression-ratio bin over every recorded step of every breast:
+    bin centres, means, counts (the paper's Fig. 12, 13)."""
+    ratio = np.concatenate([truth[n].compression_ratio for n in result.errors])
+    rmse = np.concatenate([e.mean(0) for e in result.errors.values()])
+    return ev.binned_means(ratio, rmse, width)
+
+
+def ranked_breasts(e: Evaluation) -> list[str]:
+    """Breasts predicted by every model, from the lowest to the highest mean over the models of
+    their all-steps RMSE."""
+    common = set.intersection(*(set(r.errors) for r in e.models.values()))
+    score = {n: np.mean([r.errors[n].mean() for r in e.models.values()]) for n in common}
+    return sorted(score, key=lambda n: (score[n], n))
