@@ -20,13 +20,13 @@ import csv
 import json
 import time
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import as_completed
 from pathlib import Path
 
 import hydra
 import numpy as np
 from hydra.utils import instantiate, to_absolute_path
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
 from fem import CONFIG_DIR
@@ -35,7 +35,9 @@ from fem.breasts.figures import breast_sections_png, cohort_summary_png
 from fem.breasts.io import write_mesh
 from fem.breasts.mesh import Mesher
 from fem.breasts.phantom import PhantomGenerator
+from fem.breasts.pool import worker_pool
 from fem.contract.atomic import atomic_path
+from fem.engine.simulation import Simulation
 
 LATERALITIES = ("L", "R")
 
@@ -226,12 +228,61 @@ def site_statistics(rows: list[dict]) -> dict:
     }
 
 
+def _flat(tree: object, prefix: str = "") -> dict[str, object]:
+    """``{"a.b": value}`` of a nested mapping, without Hydra's ``_target_`` entries."""
+    if not isinstance(tree, dict):
+        return {prefix: tree}
+    out: dict[str, object] = {}
+    for k, v in tree.items():
+        if k != "_target_":
+            out.update(_flat(v, f"{prefix}.{k}" if prefix else str(k)))
+    return out
+
+
+def check_settings(out_dir: Path, cfg: DictConfig) -> None:
+    """Refuse to resume a cohort made with other settings; record the settings otherwise.
+
+    ``<out_dir>/cohort_config.json`` holds the generator's, the mesher's and (once simulated)
+    the simulation's settings of the breasts in ``out_dir``. ``n_patients`` may grow between
+    runs (the cohort is extended); every other setting must match.
+
+    Raises
+    ------
+    ValueError
+        A stored setting differs from the requested one; the message names each key.
+    """
+    groups = ("generator", "mesher", "simulation") if cfg.simulate else ("generator", "mesher")
+    requested = {g: OmegaConf.to_container(cfg[g], resolve=True) for g in groups}
+    path = out_dir / "cohort_config.json"
+    stored = json.loads(path.read_text()) if path.exists() else {}
+    old, new = _flat({g: stored[g] for g in groups if g in stored}), _flat(requested)
+    new = {k: v for k, v in new.items() if k.split(".")[0] in stored}
+    differ = sorted(set(old) ^ set(new) | {k for k in set(old) & set(new) if old[k] != new[k]})
+    if differ:
+        raise ValueError(
+            f"{path}: the breasts in {out_dir} were made with other settings: "
+            + "; ".join(
+                f"{k}: {old.get(k, '(none)')} there, {new.get(k, '(none)')} now" for k in differ
+            )
+            + ". Use another out_dir, or delete this one to rebuild it."
+        )
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps({**stored, **requested}, indent=2))
+
+
 def run_cohort(cfg: DictConfig) -> dict:
-    """Generate every unfinished breast of the cohort in parallel, then write the report."""
+    """Generate every unfinished breast of the cohort in parallel, then write the report.
+
+    Every setting is checked before the first breast: the generator, mesher and simulation are
+    built from ``cfg`` and compared with the settings the folder's breasts were made with
+    (`check_settings`).
+    """
     out_dir = Path(to_absolute_path(cfg.out_dir))
-    out_dir.mkdir(parents=True, exist_ok=True)
     generator: PhantomGenerator = instantiate(cfg.generator)
     mesher: Mesher = instantiate(cfg.mesher)
+    simulation: Simulation | None = instantiate(cfg.simulation) if cfg.simulate else None
+    out_dir.mkdir(parents=True, exist_ok=True)
+    check_settings(out_dir, cfg)
     todo = [
         (p, lat)
         for p in range(cfg.n_patients)
@@ -242,7 +293,7 @@ def run_cohort(cfg: DictConfig) -> dict:
     failures: list[dict] = []
     t0 = time.perf_counter()
     with (
-        ProcessPoolExecutor(max_workers=cfg.workers) as pool,
+        worker_pool(cfg.workers) as pool,
         tqdm(
             total=2 * cfg.n_patients, initial=done, unit="breast", desc=f"cohort -> {out_dir}"
         ) as bar,
@@ -264,12 +315,12 @@ def run_cohort(cfg: DictConfig) -> dict:
     report = write_report(out_dir, cfg.n_patients, failures, time.perf_counter() - t0)
     print(json.dumps({k: v for k, v in report.items() if k != "failures"}, indent=2))
     print(f"{len(failures)} failures; outputs in {out_dir}")
-    if cfg.simulate:
+    if simulation is not None:
         names = [breast_name(p, lat) for p in range(cfg.n_patients) for lat in LATERALITIES]
         report["simulation"] = simulate_cohort(
             out_dir,
             names,
-            instantiate(cfg.simulation),
+            simulation,
             cfg.workers,
             cfg.time_series,
             cfg.retry_failed,

@@ -6,10 +6,13 @@ import meshio
 import numpy as np
 import pytest
 from hydra import compose, initialize_config_dir
+from hydra.errors import InstantiationException
 from test_cohort import CONF, _cfg
 
+from fem.breasts.cohort_simulation import simulate_breast
 from fem.cohort import run_cohort
 from fem.contract.trajectory import NodeFlag, Trajectory
+from fem.engine.simulation import Simulation, SimulationFailed
 from fem.simulate import simulate_file
 
 FEW_STEPS = ("simulation.unloaded_steps=3", "simulation.compression_steps=4")
@@ -46,21 +49,58 @@ def test_trajectories_and_report(simulated):
     assert len(rows) == 3 and rows[0].startswith("name,status,step,reason")
 
 
-def test_resume_and_failure_recorded(simulated):
+def test_resume_skips_finished_breasts(simulated):
     out, _ = simulated
     done = out / "trajectories" / "P0000_L.npz"
     stamp = done.stat().st_mtime_ns
     (out / "trajectories" / "P0000_R.npz").unlink()
-    # Without gland parameters the breast is refused (bad input): recorded, never written.
-    report = run_cohort(
-        _cfg(out, "n_patients=1", "simulate=true", "~simulation.materials.gland", *FEW_STEPS)
-    )
+    report = run_cohort(_cfg(out, "n_patients=1", "simulate=true", "figures=false", *FEW_STEPS))
     assert done.stat().st_mtime_ns == stamp  # finished breasts are not redone
-    failure = json.loads((out / "trajectories" / "P0000_R.failed.json").read_text())
-    assert failure["step"] == "input" and "tissue 'gland'" in failure["reason"]
-    assert not (out / "trajectories" / "P0000_R.npz").exists()
-    assert report["simulation"]["n_failed"] == 1
-    assert "| P0000_R | input |" in (out / "trajectories" / "simulation_summary.md").read_text()
+    assert (out / "trajectories" / "P0000_R.npz").exists()
+    assert report["simulation"]["n_converged"] == 2
+
+
+def test_a_resume_with_other_settings_is_refused_before_any_breast(simulated):
+    out, _ = simulated
+    before = sorted(p.name for p in out.rglob("*"))
+    cfg = _cfg(out, "n_patients=2", "simulate=true", "~simulation.materials.gland", *FEW_STEPS)
+    with pytest.raises(
+        ValueError, match=r"simulation\.materials\.gland\.young: 2500\.0 there, \(none\) now"
+    ):
+        run_cohort(cfg)
+    assert sorted(p.name for p in out.rglob("*")) == before  # nothing written
+
+
+def test_bad_settings_end_the_command_a_diverging_breast_is_recorded(simulated, tmp_path):
+    out, _ = simulated
+    mesh = out / "P0000_L.npz"
+    no_gland = Simulation(materials={"fat": {"young": 1100.0}, "muscle": {"young": 6000.0}})
+    with pytest.raises(ValueError, match="tissue 'gland'"):
+        simulate_breast(no_gland, mesh, tmp_path)
+    assert not list(tmp_path.iterdir())  # a settings error is no failure of the breast
+
+    class Diverges(Simulation):
+        def __call__(self, traj):
+            raise SimulationFailed(traj.source, "compression", "Newton did not converge", {})
+
+    row = simulate_breast(Diverges(), mesh, tmp_path)
+    failure = json.loads((tmp_path / "P0000_L.failed.json").read_text())
+    assert row["status"] == failure["status"] == "failed" and failure["step"] == "compression"
+    assert not (tmp_path / "P0000_L.npz").exists()
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("simulation.friction=-0.1", "simulation.friction must be >= 0"),
+        ("simulation.compression_steps=0", "simulation.compression_steps must be at least 1"),
+        ("simulation.materials.fat.poisson=0.5", "simulation.materials.fat: young must be > 0"),
+    ],
+)
+def test_bad_simulation_settings_fail_before_any_breast(tmp_path, override, message):
+    with pytest.raises(InstantiationException, match=message):  # Hydra's, around the ValueError
+        run_cohort(_cfg(tmp_path / "c", "n_patients=1", "simulate=true", override))
+    assert not (tmp_path / "c").exists()
 
 
 def test_simulate_command_writes_trajectory_and_time_series(simulated, tmp_path):

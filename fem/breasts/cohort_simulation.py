@@ -5,7 +5,8 @@
 For each mesh ``<out_dir>/P0007_L.npz`` the stage writes ``<out_dir>/trajectories/P0007_L.npz``
 (the `Trajectory` with both steps, the training data of ``datamodules/``) or, when a step does
 not converge, ``P0007_L.failed.json`` with the step and the reason; a failed breast is never
-written as a result. Either file marks the breast as done, so a killed run resumes where it
+written as a result. Bad settings or input (a `ValueError`) are no failure of the breast: they
+end the command, and nothing is stored for the breast. Either file marks the breast as done, so a killed run resumes where it
 stopped (``retry_failed=true`` tries the failures again). Every file is written atomically.
 The report (``simulation.csv``, ``simulation.json``, ``simulation_summary.md`` and
 ``simulation_summary.png``) is rebuilt from all finished breasts at the end of each run.
@@ -17,13 +18,14 @@ import csv
 import json
 import time
 from collections.abc import Sequence
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import as_completed
 from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
 from fem.breasts.figures import simulation_summary_png
+from fem.breasts.pool import worker_pool
 from fem.contract.atomic import atomic_path
 from fem.contract.timeseries import write_time_series
 from fem.contract.trajectory import Trajectory
@@ -61,15 +63,13 @@ def simulate_breast(
     try:
         row["target_compression_ratio"] = simulation.target_ratio(traj)
         result = simulation(traj)
-    except (SimulationFailed, ValueError) as exc:
-        failed = isinstance(exc, SimulationFailed)
-        seconds = exc.seconds if failed else {}
+    except SimulationFailed as exc:  # a settings or input error (ValueError) ends the command
         row.update(
             status="failed",
-            step=exc.step if failed else "input",
-            reason=exc.reason if failed else str(exc),
-            time_unloaded_s=seconds.get("unloaded", float("nan")),
-            time_compression_s=seconds.get("compression", float("nan")),
+            step=exc.step,
+            reason=exc.reason,
+            time_unloaded_s=exc.seconds.get("unloaded", float("nan")),
+            time_compression_s=exc.seconds.get("compression", float("nan")),
         )
         with atomic_path(out_dir / f"{mesh.stem}.failed.json") as tmp:
             tmp.write_text(json.dumps(row, indent=2))
@@ -221,7 +221,7 @@ def simulate_cohort(
     ]
     t0 = time.perf_counter()
     with (
-        ProcessPoolExecutor(max_workers=workers) as pool,
+        worker_pool(workers) as pool,
         tqdm(
             total=len(names),
             initial=len(names) - len(todo),

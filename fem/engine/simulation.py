@@ -389,8 +389,26 @@ class Simulation:
             name: m if isinstance(m, Material) else Material(**m)
             for name, m in self.materials.items()
         }
-        if self.compression_ratio is not None and not 0 < self.compression_ratio < 1:
-            raise ValueError(f"compression_ratio must lie in (0, 1), got {self.compression_ratio}")
+        for name, m in self.materials.items():
+            if not (m.young > 0 and 0 <= m.poisson < 0.5):
+                raise ValueError(
+                    f"simulation.materials.{name}: young must be > 0 Pa and poisson in "
+                    f"[0, 0.5), got young={m.young}, poisson={m.poisson}"
+                )
+        rules = {  # setting: (holds, what it must)
+            "compression_ratio": (
+                self.compression_ratio is None or 0 < self.compression_ratio < 1,
+                "lie in (0, 1)",
+            ),
+            "unloaded_steps": (self.unloaded_steps >= 1, "be at least 1"),
+            "compression_steps": (self.compression_steps >= 1, "be at least 1"),
+            "friction": (self.friction >= 0, "be >= 0 (0: frictionless)"),
+            "averaging": (self.averaging in ("nodal", "element"), "be 'nodal' or 'element'"),
+            "prone_gravity": (self.prone_gravity >= 0, "be >= 0 Pa/mm"),
+        }
+        for key, (holds, rule) in rules.items():
+            if not holds:
+                raise ValueError(f"simulation.{key} must {rule}, got {getattr(self, key)!r}")
 
     def target_ratio(self, traj: Trajectory) -> float:
         """The compression ratio to reach: the configured one or the breast's metadata."""
