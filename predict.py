@@ -2,10 +2,11 @@
 
     python predict.py input=case01.vtu thickness=55 laterality=L \
         unloaded_model=<run>/checkpoints/last.ckpt compression_model=<run>/baselines/xgboost.json \
-        [landmarks=lesions.csv] [out_dir=outputs/predict/case01]
+        [landmarks=lesions.csv] [out_dir=outputs/predict/case01] [reader.label_map.gland=[2,4]]
 
-The input (a Trajectory, a tetrahedral mesh or a segmentation, meshed first) goes through the
-unloaded-state model, then the compression model for each thickness (`mammo_net.predictor`).
+The input (a Trajectory, a tetrahedral mesh or a segmentation, meshed first), read by the
+``reader`` group (`fem.breasts.io.BreastReader`), goes through the unloaded-state model, then
+the compression model for each thickness (`mammo_net.predictor`).
 Writes the final shapes (VTU, and the input's format where meshio writes it), every step as an
 XDMF time series, a PNG preview in three body planes and the mapped landmarks (CSV, mm).
 """
@@ -17,10 +18,10 @@ from pathlib import Path
 
 import hydra
 from hydra.utils import instantiate, to_absolute_path
-from omegaconf import DictConfig, ListConfig, OmegaConf
+from omegaconf import DictConfig, ListConfig
 
 from fem.breasts.figures import shapes_sections_png
-from fem.breasts.io import file_suffix, is_segmentation, load_breast
+from fem.breasts.io import file_kind, file_suffix
 from mammo_net.predictor import (
     load_surrogate,
     map_landmarks,
@@ -35,11 +36,7 @@ def predict(cfg: DictConfig) -> Path:
     """Run the command on a composed config; returns the output folder."""
     out = Path(cfg.out_dir)
     source = Path(to_absolute_path(cfg.input))
-    traj = load_breast(
-        source, OmegaConf.to_container(cfg.label_map), list(cfg.spacing), cfg.tissue_field,
-        instantiate(cfg.mesher),
-    )  # fmt: skip
-    traj.metadata.setdefault("source", str(source))
+    traj = instantiate(cfg.reader)(source)
     if cfg.laterality is not None:
         traj.metadata["laterality"] = str(cfg.laterality)
     unloaded, compression = (
@@ -50,8 +47,8 @@ def predict(cfg: DictConfig) -> Path:
     start = time.perf_counter()
     shapes = predict_breast(traj, unloaded, compression, [float(t) for t in thickness])
     seconds = time.perf_counter() - start
-    mesh_file = not is_segmentation(source) and file_suffix(source) != ".npz"
-    written = write_shapes(traj, shapes, out, file_suffix(source) if mesh_file else None)
+    input_format = file_suffix(source) if file_kind(source) == "mesh" else None
+    written = write_shapes(traj, shapes, out, input_format)
     if cfg.figures:
         for k, t in enumerate(shapes.thickness):
             rows = {

@@ -1,7 +1,9 @@
 """Mesh one user breast from a segmentation or read their tetrahedral mesh.
 
-    python -m fem.mesh_breast input=case01.nii.gz label_map.gland=[2,4] output=out/case01
+    python -m fem.mesh_breast input=case01.nii.gz reader.label_map.gland=[2,4] output=out/case01
 
+The input is read by the ``reader`` group (`fem.breasts.io.BreastReader`; options
+``reader.label_map``, ``reader.spacing``, ``reader.tissue_field``, ``reader.mesher.*``).
 Writes ``<output>.vtu`` (ParaView, tissue fields), ``<output>.npz`` (the `Trajectory`) and,
 with ``figures=true``, ``<output>.png`` (body-plane sections), each atomically.
 """
@@ -13,29 +15,21 @@ from pathlib import Path
 
 import hydra
 from hydra.utils import instantiate, to_absolute_path
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from fem.breasts.figures import breast_sections_png
-from fem.breasts.io import is_segmentation, load_breast, read_segmentation, write_mesh
-from fem.breasts.mesh import Mesher
+from fem.breasts.io import write_mesh
 
 
 def mesh_breast(cfg: DictConfig) -> Path:
     """Run the command on a composed config; returns the output stem."""
     source = Path(to_absolute_path(cfg.input))
-    label_map = OmegaConf.to_container(cfg.label_map)
     stem = (
         Path(to_absolute_path(cfg.output))
         if cfg.output
         else source.with_name(source.name.split(".")[0])
     )
-    mesher: Mesher = instantiate(cfg.mesher)
-    volume = None
-    if is_segmentation(source):
-        volume = read_segmentation(source, label_map, list(cfg.spacing))
-        traj = mesher(volume, {"source": str(source)})
-    else:
-        traj = load_breast(source, label_map, tissue_field=cfg.tissue_field)
+    traj, volume = instantiate(cfg.reader).read(source)
     write_mesh(traj, stem.with_suffix(".vtu"))
     if cfg.figures:
         breast_sections_png(traj, stem.with_suffix(".png"), volume)

@@ -1,9 +1,12 @@
 """Simulate one breast: both FE steps of the reference paper on a user's file.
 
     python -m fem.simulate input=data/cohort/default/P0000_L.npz [simulation.friction=0 ...]
+    python -m fem.simulate input=case01.nii.gz reader.label_map.gland=[2,4]
 
-writes the breast with both steps (``<output>.npz``, a `Trajectory`) and an XDMF time series
-for ParaView (``<output>.xdmf``); `conf/simulate.yaml` lists the options.
+reads the input (a Trajectory, a tetrahedral mesh or a segmentation, meshed first) with the
+``reader`` group (`fem.breasts.io.BreastReader`) and writes the breast with both steps
+(``<output>.npz``, a `Trajectory`) and an XDMF time series for ParaView (``<output>.xdmf``);
+`conf/simulate.yaml` lists the options.
 """
 
 from __future__ import annotations
@@ -13,9 +16,8 @@ from pathlib import Path
 
 import hydra
 from hydra.utils import instantiate, to_absolute_path
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
-from fem.breasts.io import load_breast
 from fem.contract.timeseries import write_time_series
 
 
@@ -27,14 +29,7 @@ def simulate_file(cfg: DictConfig) -> Path:
         if cfg.output
         else source.with_name(source.name.split(".")[0] + "_simulated")
     )
-    traj = load_breast(
-        source,
-        OmegaConf.to_container(cfg.label_map),
-        list(cfg.spacing),
-        cfg.tissue_field,
-        instantiate(cfg.mesher),
-    )
-    traj.metadata.setdefault("source", str(source))
+    traj = instantiate(cfg.reader)(source)
     simulated = instantiate(cfg.simulation)(traj)
     stem.parent.mkdir(parents=True, exist_ok=True)
     if cfg.time_series:

@@ -91,11 +91,11 @@ def test_mesh_breast_command(tmp_path, ellipsoid_volume):
             "mesh_breast",
             overrides=[
                 f"input={tmp_path / 'case.nii.gz'}",
-                "label_map.fat=10",
-                "label_map.gland=[20]",
-                "label_map.muscle=30",
-                "mesher.target_elements=900",
-                "mesher.tolerance=150",
+                "reader.label_map.fat=10",
+                "reader.label_map.gland=[20]",
+                "reader.label_map.muscle=30",
+                "reader.mesher.target_elements=900",
+                "reader.mesher.tolerance=150",
             ],
         )
     stem = mesh_breast(cfg)

@@ -1,12 +1,19 @@
+from dataclasses import replace
+from pathlib import Path
+
 import meshio
 import nibabel
 import nrrd
 import numpy as np
 import pytest
+from hydra import compose, initialize_config_dir
+from hydra.utils import instantiate
 
-from fem.breasts.io import load_breast, read_mesh, read_segmentation, write_mesh
+from fem.breasts.io import BreastReader, file_kind, read_mesh, read_segmentation, write_mesh
 from fem.breasts.mesh import Mesher
 from fem.contract.trajectory import Tissue, Trajectory
+
+CONF = str(Path(__file__).resolve().parents[1] / "conf")
 
 USER_LABELS = {"background": 0, "fat": 10, "gland": [20, 21], "muscle": 30}
 
@@ -41,16 +48,19 @@ def test_user_segmentation_meshes(tmp_path, ellipsoid_volume, suffix):
     np.testing.assert_array_equal(volume.labels, ellipsoid_volume.labels)
     if suffix != ".npy":
         np.testing.assert_allclose(volume.affine, ellipsoid_volume.affine)
-    mesh = load_breast(path, USER_LABELS, mesher=Mesher(target_elements=900, tolerance=150))
+    reader = BreastReader(USER_LABELS, mesher=Mesher(target_elements=900, tolerance=150))
+    mesh, read_volume = reader.read(path)
     assert 750 <= mesh.n_cells <= 1050
     assert set(np.unique(mesh.tissue)) == {1, 2, 3}
+    np.testing.assert_array_equal(read_volume.labels, ellipsoid_volume.labels)
+    assert mesh.metadata["source"] == str(path) and file_kind(path) == "segmentation"
 
 
 def test_missing_file(tmp_path):
     with pytest.raises(FileNotFoundError, match=r"nope\.nii\.gz"):
         read_segmentation(tmp_path / "nope.nii.gz")
     with pytest.raises(FileNotFoundError, match=r"nope\.vtu"):
-        load_breast(tmp_path / "nope.vtu")
+        BreastReader()(tmp_path / "nope.vtu")
 
 
 def test_unknown_label_value(tmp_path, ellipsoid_volume):
@@ -176,7 +186,7 @@ def test_trajectory_round_trip(tmp_path, breast_mesh):
     ):
         np.testing.assert_array_equal(getattr(back, name), getattr(breast_mesh, name))
     assert back.metadata == breast_mesh.metadata
-    assert load_breast(path).n_cells == breast_mesh.n_cells
+    assert BreastReader()(path).n_cells == breast_mesh.n_cells
     assert list(tmp_path.iterdir()) == [path]  # no temporary left behind
 
 
@@ -204,3 +214,38 @@ def test_trajectory_rejects_bad_fields(tmp_path, breast_mesh):
     np.savez(tmp_path / "old.npz", schema_version=0)
     with pytest.raises(ValueError, match=r"old\.npz: field 'schema_version' is 0"):
         Trajectory.load(tmp_path / "old.npz")
+
+
+def test_reader_uses_meshes_and_trajectories_as_is(tmp_path, breast_mesh):
+    reader = BreastReader(tissue_field="medit:ref", mesher=Mesher(tolerance=0, max_attempts=1))
+    mesh_file = tmp_path / "breast.mesh"
+    tissue = {"medit:ref": [breast_mesh.tissue.astype(np.int32)]}
+    meshio.write(
+        mesh_file, meshio.Mesh(breast_mesh.points, [("tetra", breast_mesh.cells)], cell_data=tissue)
+    )
+    traj_file = breast_mesh.save(tmp_path / "breast.npz")
+    named = replace(breast_mesh, metadata={**breast_mesh.metadata, "source": "P0001_L"})
+    named_file = named.save(tmp_path / "named.npz")
+    sources = {mesh_file: str(mesh_file), traj_file: str(traj_file), named_file: "P0001_L"}
+    for path, source in sources.items():
+        traj, volume = reader.read(path)  # its mesher, which would fail, is not called
+        assert volume is None
+        np.testing.assert_array_equal(traj.cells, breast_mesh.cells)
+        np.testing.assert_array_equal(traj.tissue, breast_mesh.tissue)
+        assert traj.metadata["source"] == source
+    assert [file_kind(p) for p in (mesh_file, traj_file)] == ["mesh", "trajectory"]
+
+
+@pytest.mark.parametrize("command", ["predict", "simulate", "mesh_breast"])
+def test_commands_share_the_reader_group(command):
+    overrides = ["reader.label_map.gland=[2,4]", "reader.mesher.target_elements=900"]
+    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
+        cfg = compose(command, overrides=overrides)
+    assert not {"label_map", "spacing", "tissue_field", "mesher"} & set(cfg)
+    expected = BreastReader(
+        {"background": 0, "fat": 1, "gland": [2, 4], "muscle": 3},
+        [1.0, 1.0, 1.0],
+        "tissue",
+        Mesher(target_elements=900),
+    )
+    assert instantiate(cfg.reader) == expected

@@ -8,12 +8,16 @@ A label map (tissue name -> file values) turns the file's values into `Tissue` l
 Meshes: anything meshio reads (ABAQUS ``.inp``, VTK/VTU, Gmsh ``.msh``, MEDIT ``.mesh``...)
 with tetrahedra and a per-cell tissue array (a cell-data field, or for ABAQUS element sets
 named after the tissues), used as is.
+
+`BreastReader` reads any of them, and saved `Trajectory` files, the same way for every command.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import meshio
 import numpy as np
@@ -243,32 +247,76 @@ def _tissue_from_sets(
     return tissue
 
 
-def is_segmentation(path: str | Path) -> bool:
-    """Whether ``path`` names a label volume (to be meshed) rather than a mesh or trajectory."""
+def file_kind(path: str | Path) -> Literal["segmentation", "trajectory", "mesh"]:
+    """What a breast file holds, judged by its suffix (for ``.npz``, by its fields).
+
+    Returns
+    -------
+    {"segmentation", "trajectory", "mesh"}
+        A label volume (to be meshed), a saved `Trajectory` (``.npz`` with a
+        ``schema_version``) or a tetrahedral mesh (any other suffix, read by meshio).
+    """
     path = Path(path)
-    if file_suffix(path) not in SEGMENTATION_SUFFIXES:
-        return False
     if file_suffix(path) == ".npz" and path.is_file():
         with np.load(path, allow_pickle=False) as z:
-            return "schema_version" not in z
-    return True
+            return "trajectory" if "schema_version" in z else "segmentation"
+    return "segmentation" if file_suffix(path) in SEGMENTATION_SUFFIXES else "mesh"
 
 
-def load_breast(
-    path: str | Path,
-    label_map: Mapping[str, int | Sequence[int]] | None = None,
-    spacing: Sequence[float] = (1.0, 1.0, 1.0),
-    tissue_field: str = "tissue",
-    mesher: Mesher | None = None,
-) -> Trajectory:
-    """A user's breast as a mesh: segmentations are meshed, meshes are used as is."""
-    path = Path(path)
-    if is_segmentation(path):
-        volume = read_segmentation(path, label_map, spacing)
-        return (mesher or Mesher())(volume, {"source": str(path)})
-    if file_suffix(path) == ".npz":
-        return Trajectory.load(path)
-    return read_mesh(path, tissue_field, label_map)
+@dataclass(frozen=True)
+class BreastReader:
+    """A user's breast file -> mesh-only `Trajectory`: the input loader of every command.
+
+    This is the ``reader`` config group (`conf/reader/default.yaml`); its keys are the
+    parameters below. Segmentations are meshed, tetrahedral meshes and `Trajectory` files
+    are used as is.
+
+    Parameters
+    ----------
+    label_map : mapping, optional
+        Tissue name (``background``, ``fat``, ``gland``, ``muscle``) -> value or list of values
+        in a segmentation, or in ``tissue_field`` of a mesh. Defaults to `DEFAULT_LABELS`.
+    spacing : (3,) float
+        Voxel size in mm for NumPy segmentations without an affine.
+    tissue_field : str
+        Cell-data array holding the tissue of each tetrahedron of a mesh file.
+    mesher : Mesher
+        Meshes segmentations.
+    """
+
+    label_map: Mapping[str, int | Sequence[int]] | None = None
+    spacing: Sequence[float] = (1.0, 1.0, 1.0)
+    tissue_field: str = "tissue"
+    mesher: Mesher = field(default_factory=Mesher)
+
+    def read(self, path: str | Path) -> tuple[Trajectory, LabelVolume | None]:
+        """The breast in ``path`` and, when the file is a segmentation, its label volume.
+
+        ``metadata["source"]`` is ``path`` unless a `Trajectory` file names its own.
+
+        Raises
+        ------
+        FileNotFoundError
+            The file does not exist.
+        ValueError
+            The file cannot be read as a breast (see `read_segmentation`, `read_mesh`).
+        """
+        path = Path(path)
+        kind = file_kind(path)
+        volume = None
+        if kind == "segmentation":
+            volume = read_segmentation(path, self.label_map, self.spacing)
+            traj = self.mesher(volume)
+        elif kind == "trajectory":
+            traj = Trajectory.load(path)
+        else:
+            traj = read_mesh(path, self.tissue_field, self.label_map)
+        traj.metadata.setdefault("source", str(path))
+        return traj, volume
+
+    def __call__(self, path: str | Path) -> Trajectory:
+        """The breast in ``path`` (`read` without the label volume)."""
+        return self.read(path)[0]
 
 
 def to_meshio(traj: Trajectory) -> meshio.Mesh:
