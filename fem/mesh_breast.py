@@ -17,6 +17,7 @@ import hydra
 from hydra.utils import instantiate, to_absolute_path
 from omegaconf import DictConfig
 
+from fem import CONFIG_DIR
 from fem.breasts.figures import breast_sections_png
 from fem.breasts.io import write_mesh
 
@@ -39,7 +40,7 @@ def mesh_breast(cfg: DictConfig) -> Path:
     return stem
 
 
-@hydra.main(config_path="../conf", config_name="mesh_breast", version_base="1.3")
+@hydra.main(config_path=CONFIG_DIR, config_name="mesh_breast", version_base="1.3")
 def main(cfg: DictConfig) -> None:
     mesh_breast(cfg)
 

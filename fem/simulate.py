@@ -18,6 +18,7 @@ import hydra
 from hydra.utils import instantiate, to_absolute_path
 from omegaconf import DictConfig
 
+from fem import CONFIG_DIR
 from fem.contract.timeseries import write_time_series
 
 
@@ -40,7 +41,7 @@ def simulate_file(cfg: DictConfig) -> Path:
     return stem
 
 
-@hydra.main(config_path="../conf", config_name="simulate", version_base="1.3")
+@hydra.main(config_path=CONFIG_DIR, config_name="simulate", version_base="1.3")
 def main(cfg: DictConfig) -> None:
     simulate_file(cfg)
 
