@@ -22,6 +22,7 @@ import lightning as L
 import numpy as np
 import torch
 from numpy.typing import NDArray
+from omegaconf import OmegaConf
 from torch.utils.data import DataLoader, Dataset
 
 from datamodules.features import (
@@ -36,6 +37,17 @@ from fem.contract.atomic import atomic_path
 from fem.contract.trajectory import Trajectory
 
 STEPS = {"unloaded": unloaded_features, "compression": compression_features}
+
+#: The settings `TrajectoryDataModule.from_run` reads from a run folder, with their types.
+RUN_SETTINGS: dict[str, tuple[type, ...]] = {
+    "data_dir": (str,),
+    "step": (str,),
+    "split": (str, type(None)),
+    "fold": (int, type(None)),
+    "n_folds": (int,),
+    "val_fraction": (float, int),
+    "seed": (int,),
+}
 
 
 @dataclass(frozen=True)
@@ -165,6 +177,39 @@ class TrajectoryDataModule(L.LightningDataModule):
         self.feature_names = STEP_FEATURES[step]
         self.train: list[Breast] = []
         self.val: list[Breast] = []
+
+    @classmethod
+    def from_run(cls, run: str | Path, data_dir: str | Path | None = None) -> TrajectoryDataModule:
+        """The data module a ``train.py`` run folder was trained with, rebuilt from the plain
+        values of its ``.hydra/config.yaml`` (`RUN_SETTINGS`; other keys, ``_target_``
+        included, are ignored): a run folder may come from anyone, so nothing named in it is
+        ever instantiated. ``data_dir`` replaces the run's own trajectory folder.
+
+        Raises
+        ------
+        FileNotFoundError
+            The folder has no ``.hydra/config.yaml``.
+        ValueError
+            The config is unreadable or a setting has the wrong type; the message names the
+            file and the field.
+        """
+        config = Path(run) / ".hydra" / "config.yaml"
+        if not config.is_file():
+            raise FileNotFoundError(f"{config}: not found; is {run} a train.py run folder?")
+        try:
+            data = OmegaConf.load(config).data
+            values = {k: data[k] for k in RUN_SETTINGS if k in data}
+        except Exception as exc:  # YAML, a missing data section, unresolvable interpolations
+            raise ValueError(f"{config}: unreadable data settings ({exc})") from exc
+        for key, types in RUN_SETTINGS.items():
+            if key in values and not isinstance(values[key], types):
+                raise ValueError(
+                    f"{config}: field 'data.{key}' must be {' or '.join(t.__name__ for t in types)}, "
+                    f"got {values[key]!r}"
+                )
+        if data_dir is not None:
+            values["data_dir"] = str(data_dir)
+        return cls(**values)
 
     def sources(self) -> list[Path]:
         files = sorted(self.data_dir.glob("P*_[LR].npz"))

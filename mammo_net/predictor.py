@@ -25,6 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from datamodules.features import FeatureSchema, compression_inputs, unloaded_inputs
+from datamodules.trajectories import TrajectoryDataModule
 from fem.breasts.io import write_mesh
 from fem.contract.atomic import atomic_path
 from fem.contract.landmarks import SOURCE_TO_IMAGE_MM, carry, locate, project_cc
@@ -176,11 +177,9 @@ RUN_MODELS = {
 def predict_run(run: str | Path) -> list[Path]:
     """Write the missing ``predictions/<model>.npz`` of a run folder from its model files
     (`RUN_MODELS`): the validation breasts of the run's split, read from its
-    ``.hydra/config.yaml``. A run kept as model files (the committed cross-validation folds
-    in ``results/``) thus feeds the evaluation report without retraining."""
-    from hydra.utils import instantiate
-    from omegaconf import OmegaConf
-
+    ``.hydra/config.yaml`` (`datamodules.trajectories.TrajectoryDataModule.from_run`: plain
+    values, nothing instantiated). A run kept as model files (the committed cross-validation
+    folds in ``results/``) thus feeds the evaluation report without retraining."""
     run = Path(run)
     todo = {
         name: run / file
@@ -189,14 +188,13 @@ def predict_run(run: str | Path) -> list[Path]:
     }
     if not todo:
         return []
-    cfg = OmegaConf.load(run / ".hydra" / "config.yaml")
-    dm = instantiate(cfg.data)
+    dm = TrajectoryDataModule.from_run(run)
     dm.prepare_data()
     dm.setup()
     return [
         save_predictions(
             run / "predictions" / f"{name}.npz",
-            load_surrogate(file, str(cfg.data.step)).predict,
+            load_surrogate(file, dm.hparams.step).predict,
             dm.val,
         )
         for name, file in todo.items()

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
-from omegaconf import OmegaConf
 
+from datamodules.trajectories import TrajectoryDataModule
 from fem.contract.trajectory import TISSUE_BIT, NodeFlag, Tissue, Trajectory
 from mammo_net import evaluation as ev
 from mammo_net.inference import load_prediction_seconds, load_predictions
@@ -86,14 +86,11 @@ def load_truth(path: Path, step: str) -> BreastTruth:
 
 
 def run_settings(run: Path) -> tuple[str, str, Path]:
-    """(split label, step, trajectory folder) of a run folder, from its ``.hydra/config.yaml``."""
-    config = run / ".hydra" / "config.yaml"
-    if not config.exists():
-        raise FileNotFoundError(f"{config}: not found; is {run} a train.py run folder?")
-    data = OmegaConf.load(config).data
-    split = data.get("split") or ("k_fold" if data.get("fold") is not None else "one_fold")
-    label = f"{data.n_folds}-fold CV" if split == "k_fold" else "one-fold"
-    return label, str(data.step), Path(str(data.data_dir))
+    """(split label, step, trajectory folder) of a run folder, from the plain values of its
+    ``.hydra/config.yaml`` (`TrajectoryDataModule.from_run`; nothing in it is instantiated)."""
+    hp = TrajectoryDataModule.from_run(run).hparams
+    label = f"{hp.n_folds}-fold CV" if hp.split == "k_fold" else "one-fold"
+    return label, str(hp.step), Path(str(hp.data_dir))
 
 
 def collect(runs: Iterable[str | Path], data_dir: str | Path | None = None) -> list[Evaluation]:
