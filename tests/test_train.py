@@ -79,6 +79,20 @@ def test_train_prints_the_comparison(trajectory_folder, tmp_path, capsys):
         assert row.split("| (")[2].startswith(f"{mean:.2f},")  # last step: (mean, ...
 
 
+def test_train_composes_the_cohort_settings():
+    """train.py's cohort is conf/cohort.yaml's, smaller and in its own folder; cohort.yaml's
+    hydra settings stay its own."""
+    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
+        cohort = compose("cohort", return_hydra_config=True)
+        trained = compose("train", overrides=["cohort.workers=3"], return_hydra_config=True)
+    expected = OmegaConf.to_container(cohort)
+    del expected["hydra"]
+    expected.update(n_patients=6, out_dir="data/cohort/train_default", figures=False, workers=3)
+    assert OmegaConf.to_container(trained.cohort) == expected
+    assert cohort.hydra.run.dir.startswith("data/cohort/default/hydra/")
+    assert trained.hydra.run.dir.startswith("outputs/train/")
+
+
 def test_model_settings_are_the_module_signature():
     """The model's keys are SurrogateModule's arguments with their defaults, overridden without
     ``+``; its step is the data's."""
