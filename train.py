@@ -24,6 +24,7 @@ from fem.contract.atomic import atomic_path
 from mammo_net.callbacks import TreeBaseline
 from mammo_net.inference import network_predictor, save_predictions
 from mammo_net.metrics import comparison
+from mammo_net.module import SurrogateModule  # importing it stores the model's config node
 from mammo_net.report import write_report
 
 
@@ -47,10 +48,11 @@ def logged(trainer: L.Trainer, baselines: list[TreeBaseline]) -> dict[str, float
 def train(cfg: DictConfig) -> float:
     """Fit (and test) on a composed config; returns the validation metric ``optimized_metric``."""
     L.seed_everything(cfg.seed, workers=True)
+    model: SurrogateModule = instantiate(cfg.model)
+    model.check_data_step(cfg.data.step)  # before the cohort is built and its features cached
     dm = instantiate(cfg.data, data_dir=ensure_cohort(cfg))
     dm.prepare_data()
     dm.setup()
-    model = instantiate(cfg.model)
     model.set_feature_normalization(*dm.feature_statistics(), dm.schema())
     # entries without _target_: a paper experiment's parameters of a callback left out
     callbacks = [instantiate(c) for c in cfg.callbacks.values() if c and "_target_" in c]

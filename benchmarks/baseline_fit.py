@@ -17,6 +17,7 @@ from pathlib import Path
 
 from hydra import compose, initialize_config_dir
 
+import mammo_net.module  # noqa: F401  (stores the model config node that conf/train.yaml composes)
 from datamodules.trajectories import TrajectoryDataModule
 from mammo_net import baselines
 

@@ -5,20 +5,29 @@ Zhou et al. (2016) with two cascaded activation stages: ``M = act1(H)``,
 ``alpha = softmax(w^T M)`` over the steps, ``h* = act2(H^T alpha)``. Decoder: an LSTM started
 from ``h*`` that reads the encoder outputs step by step, with Luong et al. (2015) global
 attention over them ("general" score), and a linear head to the node's x, y, z per step.
+
+The classes here take every setting as an argument: the defaults of the network live in
+`mammo_net.module.SurrogateModule` alone, the paper's activations per step in
+`PAPER_ACTIVATIONS`.
 """
 
 from __future__ import annotations
+
+from collections.abc import Sequence
 
 import torch
 from torch import nn
 
 ACTIVATIONS = {"tanh": torch.tanh, "relu": torch.relu, "sigmoid": torch.sigmoid}
 
+#: The attention layer's two activation stages of the paper's model of each simulation step.
+PAPER_ACTIVATIONS = {"unloaded": ("tanh", "relu"), "compression": ("sigmoid", "sigmoid")}
+
 
 class AttentionPooling(nn.Module):
     """Zhou et al. (2016): ``h* = act2(H^T softmax(w^T act1(H)))``, (B, T, D) -> (B, D)."""
 
-    def __init__(self, dim: int, first: str = "tanh", second: str = "tanh") -> None:
+    def __init__(self, dim: int, first: str, second: str) -> None:
         super().__init__()
         for name in (first, second):
             if name not in ACTIVATIONS:
@@ -43,8 +52,8 @@ class AttBLSTM(nn.Module):
     layers : int
         Stacked encoder LSTM layers.
     activations : (str, str)
-        The attention layer's two stages (the paper: tanh, relu for the unloaded state;
-        sigmoid, sigmoid for compression).
+        The attention layer's two stages, names of `ACTIVATIONS` (the paper's per step:
+        `PAPER_ACTIVATIONS`).
     dropout : float
         Between stacked encoder layers and before the head.
     """
@@ -52,10 +61,10 @@ class AttBLSTM(nn.Module):
     def __init__(
         self,
         n_features: int,
-        hidden: int = 64,
-        layers: int = 2,
-        activations: tuple[str, str] = ("tanh", "relu"),
-        dropout: float = 0.0,
+        hidden: int,
+        layers: int,
+        activations: Sequence[str],
+        dropout: float,
     ) -> None:
         super().__init__()
         self.encoder = nn.LSTM(
@@ -67,7 +76,8 @@ class AttBLSTM(nn.Module):
             dropout=dropout if layers > 1 else 0.0,
         )
         d = 2 * hidden
-        self.pool = AttentionPooling(d, *activations)
+        first, second = activations
+        self.pool = AttentionPooling(d, first, second)
         self.decoder = nn.LSTM(d, d, batch_first=True)
         self.score = nn.Linear(d, d, bias=False)  # Luong "general": s_ts = dec_t W H_s
         self.combine = nn.Linear(2 * d, d)

@@ -1,18 +1,36 @@
-"""The LightningModule of the sequence surrogate: one shared step, errors in millimetres."""
+"""The LightningModule of the sequence surrogate: one shared step, errors in millimetres.
+
+The network's settings have one home: the signature of `SurrogateModule`. The Hydra config
+``model/att_blstm`` (conf/model/att_blstm.yaml) holds only the target and ``step:
+${data.step}``; its other keys are the node ``model/att_blstm_signature``, generated from the
+signature and stored in Hydra's ConfigStore when this module is imported (so whatever composes
+conf/train.yaml imports it first: train.py, the benchmarks, the tests). The keys are listed,
+so ``python train.py model.hidden=128`` needs no ``+``, and ``--cfg job`` shows every setting;
+a default changed here is the config's default, with no YAML copy to disagree (a YAML that
+restated the keys, kept equal by a test, would still be two homes). ``activations=None`` is
+the paper's choice for the step (`mammo_net.models.PAPER_ACTIVATIONS`), and the number of
+input features follows from the step (`datamodules.features.STEP_FEATURES`), so the network
+cannot be built for other features than the data module's.
+"""
 
 from __future__ import annotations
 
 import functools
+import inspect
 import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
 
 import lightning as L
 import torch
+from hydra.core.config_store import ConfigStore
 from numpy.typing import NDArray
 from torch.nn import functional as F
 
-from datamodules.features import FeatureSchema
+from datamodules.features import STEP_FEATURES, FeatureSchema
 from mammo_net.metrics import BreastErrors
-from mammo_net.models import AttBLSTM
+from mammo_net.models import PAPER_ACTIVATIONS, AttBLSTM
 
 STAGES = ("train", "val", "test")
 
@@ -20,17 +38,22 @@ STAGES = ("train", "val", "test")
 class SurrogateModule(L.LightningModule):
     """Att-BLSTM on per-node step sequences, (B, T, F) -> (B, T, 3), RMSE loss.
 
-    The checkpoint holds everything to rebuild it: the hyperparameters, the feature
-    standardisation (buffers ``feature_mean``/``feature_std``) and the feature schema (step,
-    feature names, recorded steps; ``checkpoint["feature_schema"]``), both set from the
-    training data with `set_feature_normalization` before fitting.
+    The checkpoint holds everything to rebuild it (`from_checkpoint`): the hyperparameters,
+    the feature standardisation (buffers ``feature_mean``/``feature_std``) and the feature
+    schema (step, feature names, recorded steps; ``checkpoint["feature_schema"]``), both set
+    from the training data with `set_feature_normalization` before fitting.
 
     Parameters
     ----------
-    n_features : int
-        11 (unloaded state) or 22 (compression).
-    hidden, layers, activations, dropout
+    step : {"unloaded", "compression"}
+        The simulation step it predicts; its features are the input (F = 11 or 22,
+        `datamodules.features.STEP_FEATURES`).
+    hidden, layers, dropout
         Of `mammo_net.models.AttBLSTM`.
+    activations : (str, str), optional
+        The attention layer's two stages; default the paper's for ``step``
+        (`mammo_net.models.PAPER_ACTIVATIONS`: tanh, relu for the unloaded state; sigmoid,
+        sigmoid for compression).
     residual : bool
         Predict the displacement from the node's input coordinates (features 1-3) instead of
         the coordinates (our addition; the paper's model: ``False``).
@@ -44,32 +67,56 @@ class SurrogateModule(L.LightningModule):
 
     def __init__(
         self,
-        n_features: int,
+        step: str,
         hidden: int = 64,
         layers: int = 2,
-        activations: tuple[str, str] = ("tanh", "relu"),
+        activations: Sequence[str] | None = None,
         dropout: float = 0.0,
         residual: bool = True,
         lr: float = 0.03,
         lr_schedule: str = "constant",
     ) -> None:
         super().__init__()
+        if step not in STEP_FEATURES:
+            raise ValueError(f"step must be one of {sorted(STEP_FEATURES)}, got {step!r}")
         if lr_schedule not in ("constant", "cosine"):
             raise ValueError(f"lr_schedule must be 'constant' or 'cosine', not {lr_schedule!r}")
-        activations = tuple(str(a) for a in activations)  # plain types: weights-only checkpoints
+        if activations is None:
+            activations = PAPER_ACTIVATIONS[step]
+        # saved resolved and as plain types: a weights-only checkpoint keeps its network
+        activations = tuple(str(a) for a in activations)
         self.save_hyperparameters()
-        self.net = AttBLSTM(n_features, hidden, layers, activations, dropout)
-        self.register_buffer("feature_mean", torch.zeros(n_features))
-        self.register_buffer("feature_std", torch.ones(n_features))
+        self.net = AttBLSTM(self.n_features, hidden, layers, activations, dropout)
+        self.register_buffer("feature_mean", torch.zeros(self.n_features))
+        self.register_buffer("feature_std", torch.ones(self.n_features))
         self.schema: FeatureSchema | None = None
         # keys f"{stage}_rmse": a ModuleDict key may not shadow a method (train)
         self.errors = torch.nn.ModuleDict({f"{stage}_rmse": BreastErrors() for stage in STAGES})
 
-    def set_feature_normalization(
-        self, mean: NDArray, std: NDArray, schema: FeatureSchema | None = None
-    ) -> None:
+    @property
+    def n_features(self) -> int:
+        """F, the number of input features: the step's."""
+        return len(STEP_FEATURES[self.hparams.step])
+
+    def check_data_step(self, step: str) -> None:
+        """Refuse data of another simulation step than the network's: other features.
+
+        Raises
+        ------
+        ValueError
+            Naming the settings to change, ``model.step`` and ``data.step``.
+        """
+        if step != self.hparams.step:
+            raise ValueError(
+                f"model.step={self.hparams.step} (a network of {self.n_features} features) does "
+                f"not match data.step={step}: leave model.step at its default ${{data.step}} or "
+                "set both to the same step"
+            )
+
+    def set_feature_normalization(self, mean: NDArray, std: NDArray, schema: FeatureSchema) -> None:
         """Standardise the features with the training split's statistics, (F,) each, and
-        record the data's feature ``schema``."""
+        record the data's feature ``schema`` (refused if of another step, `check_data_step`)."""
+        self.check_data_step(schema.step)
         self.feature_mean.copy_(torch.as_tensor(mean, dtype=torch.float32))
         self.feature_std.copy_(torch.as_tensor(std, dtype=torch.float32).clamp_min(1e-6))
         self.schema = schema
@@ -81,6 +128,38 @@ class SurrogateModule(L.LightningModule):
     def on_load_checkpoint(self, checkpoint: dict) -> None:
         if "feature_schema" in checkpoint:
             self.schema = FeatureSchema.from_json(checkpoint["feature_schema"], "checkpoint")
+
+    @classmethod
+    def from_checkpoint(cls, path: str | Path) -> SurrogateModule:
+        """The trained network of a checkpoint, on the CPU, in eval mode.
+
+        Reads the file with ``torch.load(weights_only=True)``: no code from it is run.
+        Checkpoints written before the step was a setting (hyperparameter ``n_features``, no
+        ``step``) take the step of their feature schema.
+
+        Raises
+        ------
+        ValueError
+            Such an old checkpoint without a feature schema, or whose ``n_features`` is not
+            its step's number of features.
+        """
+        checkpoint = torch.load(path, map_location="cpu", weights_only=True)
+        hparams = dict(checkpoint["hyper_parameters"])
+        if "n_features" in hparams:
+            n_features = hparams.pop("n_features")
+            if "feature_schema" not in checkpoint:
+                raise ValueError(f"{path}: the checkpoint names no step (no feature schema)")
+            step = FeatureSchema.from_json(checkpoint["feature_schema"], str(path)).step
+            if n_features != len(STEP_FEATURES.get(step, ())):
+                raise ValueError(
+                    f"{path}: n_features={n_features} is not the number of features of the "
+                    f"schema's step {step!r}"
+                )
+            hparams["step"] = step
+        model = cls(**hparams)
+        model.load_state_dict(checkpoint["state_dict"], strict=True)
+        model.on_load_checkpoint(checkpoint)
+        return model.eval()
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         out = self.net((x - self.feature_mean) / self.feature_std)  # (B, T, 3)
@@ -138,6 +217,20 @@ class SurrogateModule(L.LightningModule):
             "optimizer": optimizer,
             "lr_scheduler": {"scheduler": scheduler, "interval": "step"},
         }
+
+
+def signature_defaults(cls: type) -> dict[str, Any]:
+    """The arguments of ``cls`` that have a default, with it: the config node of its settings."""
+    return {
+        name: p.default
+        for name, p in inspect.signature(cls).parameters.items()
+        if p.default is not inspect.Parameter.empty
+    }
+
+
+ConfigStore.instance().store(
+    group="model", name="att_blstm_signature", node=signature_defaults(SurrogateModule)
+)
 
 
 def warmup_cosine(step: int, total: int, warmup_fraction: float = 0.01) -> float:

@@ -53,11 +53,11 @@ def load_surrogate(
     path: str | Path, step: str | None = None, row_by_row: bool = False, precision: str = "32-true"
 ) -> Surrogate:
     """Load a model file without executing code from it: a Lightning checkpoint (``.ckpt``,
-    ``weights_only``), XGBoost JSON/UBJSON (``.json``/``.ubj``) or the forest's arrays
-    (``.npz``). The trees predict whole node sequences by step intervals
-    (`mammo_net.sequence_trees`); ``row_by_row`` uses their own row-by-row predictions
-    instead (the same values, slower; for benchmarks). ``precision`` of the network:
-    ``"32-true"`` or ``"bf16-mixed"`` (`mammo_net.inference.network_predictor`).
+    `mammo_net.module.SurrogateModule.from_checkpoint`), XGBoost JSON/UBJSON
+    (``.json``/``.ubj``) or the forest's arrays (``.npz``). The trees predict whole node
+    sequences by step intervals (`mammo_net.sequence_trees`); ``row_by_row`` uses their own
+    row-by-row predictions instead (the same values, slower; for benchmarks). ``precision``
+    of the network: ``"32-true"`` or ``"bf16-mixed"`` (`mammo_net.inference.network_predictor`).
 
     Raises
     ------
@@ -69,7 +69,7 @@ def load_surrogate(
     if path.suffix == ".ckpt":
         from mammo_net.module import SurrogateModule
 
-        model = SurrogateModule.load_from_checkpoint(path, map_location="cpu", weights_only=True)
+        model = SurrogateModule.from_checkpoint(path)
         name, schema, predict = (
             "att_blstm",
             model.schema,

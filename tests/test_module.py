@@ -1,22 +1,63 @@
 """The sequence surrogate: shapes, training lowers the loss, the checkpoint rebuilds it."""
 
+from pathlib import Path
+
 import lightning as L
 import numpy as np
 import pytest
 import torch
 
-from datamodules.features import FeatureSchema
+from datamodules.features import STEP_FEATURES, FeatureSchema
 from datamodules.trajectories import TrajectoryDataModule
-from mammo_net.models import AttBLSTM
+from mammo_net.models import PAPER_ACTIVATIONS, AttBLSTM
 from mammo_net.module import SurrogateModule, warmup_cosine
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.mark.parametrize("activations", [("tanh", "relu"), ("sigmoid", "sigmoid")])
 def test_att_blstm_shapes(activations):
-    net = AttBLSTM(22, hidden=8, layers=2, activations=activations)
+    net = AttBLSTM(22, hidden=8, layers=2, activations=activations, dropout=0.0)
     assert net(torch.zeros(5, 70, 22)).shape == (5, 70, 3)  # (B, T, F) -> (B, T, 3)
     with pytest.raises(ValueError, match="activation must be one of"):
-        AttBLSTM(11, activations=("tanh", "gelu"))
+        AttBLSTM(11, hidden=8, layers=1, activations=("tanh", "gelu"), dropout=0.0)
+
+
+def test_the_step_sets_the_features_and_the_paper_activations():
+    for step, activations in PAPER_ACTIVATIONS.items():
+        model = SurrogateModule(step, hidden=4, layers=1)
+        assert model.hparams.activations == activations
+        assert model.n_features == len(STEP_FEATURES[step]) == len(model.feature_mean)
+        assert model.net.encoder.input_size == model.n_features
+    own = SurrogateModule("unloaded", hidden=4, layers=1, activations=["sigmoid", "tanh"])
+    assert own.hparams.activations == ("sigmoid", "tanh")
+    with pytest.raises(ValueError, match="step must be one of"):
+        SurrogateModule("compressed")
+    with pytest.raises(ValueError, match=r"model\.step=compression .*data\.step=unloaded"):
+        SurrogateModule("compression").set_feature_normalization(
+            np.zeros(11), np.ones(11), FeatureSchema.of("unloaded", 2)
+        )
+
+
+@pytest.mark.parametrize("step", ["compression", "unloaded"])
+def test_committed_checkpoints_load(step, tmp_path):
+    """The cross-validation checkpoints in results/, saved with ``n_features`` and no step,
+    take their step from the feature schema."""
+    path = ROOT / f"results/cv/att_blstm/{step}/fold0/checkpoints/best.ckpt"
+    checkpoint = torch.load(path, weights_only=True)
+    assert "step" not in checkpoint["hyper_parameters"]  # the format before the step setting
+    model = SurrogateModule.from_checkpoint(path)
+    assert model.hparams.step == model.schema.step == step
+    assert model.hparams.activations == PAPER_ACTIVATIONS[step]
+    assert model.n_features == len(STEP_FEATURES[step]) == (22 if step == "compression" else 11)
+    assert not model.training
+    with torch.no_grad():
+        out = model(torch.zeros(2, model.schema.n_steps, model.n_features))
+    assert out.shape == (2, model.schema.n_steps, 3)
+    checkpoint["hyper_parameters"]["n_features"] = 33  # not the step's
+    torch.save(checkpoint, tmp_path / "other.ckpt")
+    with pytest.raises(ValueError, match=f"n_features=33 is not .* step '{step}'"):
+        SurrogateModule.from_checkpoint(tmp_path / "other.ckpt")
 
 
 def test_fit_log_and_reload(trajectory_folder, tmp_path):
@@ -26,7 +67,7 @@ def test_fit_log_and_reload(trajectory_folder, tmp_path):
     )
     dm.prepare_data()
     dm.setup()
-    model = SurrogateModule(22, hidden=8, layers=1, lr=0.01)
+    model = SurrogateModule("compression", hidden=8, layers=1, lr=0.01)
     mean, std = dm.feature_statistics()
     model.set_feature_normalization(mean, std, dm.schema())
     trainer = L.Trainer(
@@ -47,7 +88,7 @@ def test_fit_log_and_reload(trajectory_folder, tmp_path):
         assert name in metrics and torch.isfinite(metrics[name])
     ckpt = tmp_path / "model.ckpt"
     trainer.save_checkpoint(ckpt)
-    again = SurrogateModule.load_from_checkpoint(ckpt, weights_only=True)
+    again = SurrogateModule.from_checkpoint(ckpt)
     assert again.schema == FeatureSchema.of("compression", 3)  # tiny trajectories: 3 steps
     np.testing.assert_array_equal(again.feature_mean.numpy(), mean.astype(np.float32))
     x = next(iter(dm.val_dataloader()))[0]
@@ -62,7 +103,7 @@ def test_cosine_schedule_warms_up_and_decays_to_zero(trajectory_folder, tmp_path
     assert warmup_cosine(10 + 495, 1000) == pytest.approx(0.5)
     assert warmup_cosine(1000, 1000) == pytest.approx(0.0)
     dm = TrajectoryDataModule(str(trajectory_folder), step="unloaded", batch_size=16)
-    model = SurrogateModule(11, hidden=4, layers=1, lr=0.01, lr_schedule="cosine")
+    model = SurrogateModule("unloaded", hidden=4, layers=1, lr=0.01, lr_schedule="cosine")
     trainer = L.Trainer(
         max_epochs=2, accelerator="cpu", logger=False, enable_progress_bar=False,
         enable_checkpointing=False, default_root_dir=tmp_path,
@@ -71,4 +112,4 @@ def test_cosine_schedule_warms_up_and_decays_to_zero(trajectory_folder, tmp_path
     lr = trainer.optimizers[0].param_groups[0]["lr"]
     assert lr < 0.01 * 0.01  # the last step's factor, near zero
     with pytest.raises(ValueError, match="lr_schedule must be"):
-        SurrogateModule(11, lr_schedule="linear")
+        SurrogateModule("unloaded", lr_schedule="linear")

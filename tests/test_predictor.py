@@ -48,7 +48,7 @@ def models(tmp_path_factory):
     dm.prepare_data()
     dm.setup()
     torch.manual_seed(0)
-    net = SurrogateModule(11, hidden=4, layers=1)
+    net = SurrogateModule("unloaded", hidden=4, layers=1)
     net.set_feature_normalization(*dm.feature_statistics(), dm.schema())
     trainer = L.Trainer(max_epochs=1, accelerator="cpu", logger=False, enable_progress_bar=False,
                         enable_checkpointing=False, default_root_dir=folder)  # fmt: skip

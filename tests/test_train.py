@@ -20,7 +20,8 @@ from fem.contract.trajectory import Trajectory
 from mammo_net.baselines import forest_schema, load_xgboost, xgboost_schema
 from mammo_net.inference import load_predictions
 from mammo_net.metrics import breast_rmse, comparison
-from mammo_net.module import SurrogateModule
+from mammo_net.models import PAPER_ACTIVATIONS
+from mammo_net.module import SurrogateModule, signature_defaults
 from mammo_net.report import write_report
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -61,7 +62,7 @@ def test_train_prints_the_comparison(trajectory_folder, tmp_path, capsys):
     assert xgboost_schema(load_xgboost(tmp_path / "baselines" / "xgboost.json")) == schema
     assert forest_schema(tmp_path / "baselines" / "ert.npz") == schema
     ckpt = next((tmp_path / "checkpoints").glob("*.ckpt"))
-    assert SurrogateModule.load_from_checkpoint(ckpt, weights_only=True).schema == schema
+    assert SurrogateModule.from_checkpoint(ckpt).schema == schema
     assert list((tmp_path / "tensorboard").glob("events.out.tfevents.*"))
     # The saved predictions (mm) reproduce the table's test errors against the FE positions.
     for model in ("xgboost", "ert", "att_blstm"):
@@ -78,13 +79,51 @@ def test_train_prints_the_comparison(trajectory_folder, tmp_path, capsys):
         assert row.split("| (")[2].startswith(f"{mean:.2f},")  # last step: (mean, ...
 
 
+def test_train_composes_the_cohort_settings():
+    """train.py's cohort is conf/cohort.yaml's, smaller and in its own folder; cohort.yaml's
+    hydra settings stay its own."""
+    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
+        cohort = compose("cohort", return_hydra_config=True)
+        trained = compose("train", overrides=["cohort.workers=3"], return_hydra_config=True)
+    expected = OmegaConf.to_container(cohort)
+    del expected["hydra"]
+    expected.update(n_patients=6, out_dir="data/cohort/train_default", figures=False, workers=3)
+    assert OmegaConf.to_container(trained.cohort) == expected
+    assert cohort.hydra.run.dir.startswith("data/cohort/default/hydra/")
+    assert trained.hydra.run.dir.startswith("outputs/train/")
+
+
+def test_model_settings_are_the_module_signature():
+    """The model's keys are SurrogateModule's arguments with their defaults, overridden without
+    ``+``; its step is the data's."""
+    cfg = _cfg("data.step=unloaded", "model.hidden=16")
+    settings = {k: v for k, v in cfg.model.items() if k not in ("_target_", "step")}
+    assert settings == {**signature_defaults(SurrogateModule), "hidden": 16}
+    model = instantiate(cfg.model)
+    assert model.hparams.step == "unloaded" and model.n_features == 11
+    assert model.hparams.activations == PAPER_ACTIVATIONS["unloaded"]
+    assert model.hparams.hidden == 16
+
+
+def test_train_refuses_a_model_of_another_step(tmp_path):
+    cfg = _cfg(
+        f"run_dir={tmp_path}",
+        f"data.data_dir={tmp_path / 'absent'}",  # refused before the data are read
+        "data.step=unloaded",
+        "model.step=compression",
+    )
+    with pytest.raises(ValueError, match=r"model\.step=compression .*data\.step=unloaded"):
+        train.train(cfg)
+
+
 @pytest.mark.parametrize("experiment", ["paper_compression", "paper_unloaded"])
 def test_experiment_configs_instantiate(experiment, tmp_path):
     cfg = _cfg(f"experiment={experiment}", f"run_dir={tmp_path}")
     dm = instantiate(cfg.data)
     assert dm.hparams.step in experiment
     model = instantiate(cfg.model)
-    assert model.hparams.n_features == (22 if "compression" in experiment else 11)
+    assert model.n_features == (22 if "compression" in experiment else 11)
+    assert model.hparams.activations == PAPER_ACTIVATIONS[dm.hparams.step]
     callbacks = {k: instantiate(v) for k, v in cfg.callbacks.items()}
     assert set(callbacks) == {"model_checkpoint", "xgboost", "ert"}
     assert instantiate(cfg.trainer, logger=False).max_epochs == 30
@@ -106,7 +145,7 @@ def test_cross_validation_configs_instantiate(step, cv, tmp_path):
     assert len(callbacks) == 1
     dm, model = instantiate(cfg.data), instantiate(cfg.model)
     assert dm.hparams.step == step and dm.hparams.fold == 4
-    assert model.hparams.n_features == (22 if step == "compression" else 11)
+    assert model.n_features == (22 if step == "compression" else 11)
     assert cfg.trainer.max_epochs == (0 if cv == "cv_xgboost" else 1)
 
 
@@ -140,6 +179,24 @@ TINY = (
     "~logger",
     "+trainer.enable_progress_bar=false",
 )
+
+
+def test_train_the_unloaded_step(trajectory_folder, tmp_path):
+    """``python train.py data.step=unloaded``: the network takes the step's 11 features."""
+    cfg = _cfg(
+        f"run_dir={tmp_path}",
+        f"data.data_dir={trajectory_folder}",
+        "data.step=unloaded",
+        "trainer.max_epochs=1",
+        "callbacks=model_checkpoint",
+        "report=false",
+        *TINY,
+    )
+    assert train.train(cfg) > 0
+    assert "| att_blstm | (" in (tmp_path / "results.md").read_text()
+    model = SurrogateModule.from_checkpoint(tmp_path / "checkpoints" / "last.ckpt")
+    assert model.schema == FeatureSchema.of("unloaded", 2)  # tiny trajectories: 2 steps
+    assert model.hparams.activations == PAPER_ACTIVATIONS["unloaded"]
 
 
 def _run_train(tmp_path, trajectory_folder, *overrides, multirun=False):
@@ -198,9 +255,7 @@ def test_two_process_cpu_ddp(trajectory_folder, tmp_path):
     report = (run / "report" / "report.md").read_text()  # the run's own evaluation report
     assert "| one-fold | compression | att_blstm | 6 | (" in report
     assert (run / "report" / "figures" / "one_fold_compression_sections_worst.png").exists()
-    model = SurrogateModule.load_from_checkpoint(
-        next((run / "checkpoints").glob("epoch*.ckpt")), weights_only=True
-    )
+    model = SurrogateModule.from_checkpoint(next((run / "checkpoints").glob("epoch*.ckpt")))
     dm = TrajectoryDataModule(str(trajectory_folder), val_fraction=0.25, batch_size=5)
     dm.setup()
     trainer = L.Trainer(accelerator="cpu", logger=False, enable_progress_bar=False)
