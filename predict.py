@@ -8,7 +8,10 @@ The input (a Trajectory, a tetrahedral mesh or a segmentation, meshed first), re
 ``reader`` group (`fem.breasts.io.BreastReader`), goes through the unloaded-state model, then
 the compression model for each thickness (`mammo_net.predictor`).
 Writes the final shapes (VTU, and the input's format where meshio writes it), every step as an
-XDMF time series, a PNG preview in three body planes and the mapped landmarks (CSV, mm).
+XDMF time series, a PNG preview in three body planes, the mapped landmarks (CSV, mm) and
+``checks.json``: the prediction time and the physical checks of every shape
+(`mammo_net.validity`: inverted elements, volume change, skin inside a plate), which also warn,
+or refuse the output with ``checks.on_violation=refuse``.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ from omegaconf import DictConfig, ListConfig
 
 from fem.breasts.figures import shapes_sections_png
 from fem.breasts.io import file_kind, file_suffix
+from fem.contract.atomic import writable_folder, write_json
 from mammo_net.predictor import (
     load_surrogate,
     map_landmarks,
@@ -33,8 +37,13 @@ from mammo_net.predictor import (
 
 
 def predict(cfg: DictConfig) -> Path:
-    """Run the command on a composed config; returns the output folder."""
+    """Run the command on a composed config; returns the output folder.
+
+    Every input is read and checked, and the shapes predicted and checked (`checks`), before
+    the first file is written."""
     out = Path(cfg.out_dir)
+    writable_folder(out)
+    checks = instantiate(cfg.checks)
     source = Path(to_absolute_path(cfg.input))
     traj = instantiate(cfg.reader)(source)
     if cfg.laterality is not None:
@@ -44,14 +53,21 @@ def predict(cfg: DictConfig) -> Path:
         for path, step in ((cfg.unloaded_model, "unloaded"), (cfg.compression_model, "compression"))
     )
     thickness = list(cfg.thickness) if isinstance(cfg.thickness, ListConfig) else [cfg.thickness]
+    landmarks = Path(to_absolute_path(cfg.landmarks)) if cfg.landmarks else None
+    names, points = read_landmarks(landmarks) if landmarks else ([], None)
     start = time.perf_counter()
     shapes = predict_breast(traj, unloaded, compression, [float(t) for t in thickness])
     seconds = time.perf_counter() - start
+    record = checks(traj, shapes)
+    rows = landmarks and map_landmarks(
+        traj, shapes, names, points, cfg.source_to_image_mm, str(landmarks)
+    )
     input_format = file_suffix(source) if file_kind(source) == "mesh" else None
     written = write_shapes(traj, shapes, out, input_format)
+    written.append(write_json({"seconds": seconds, "checks": record}, out / "checks.json"))
     if cfg.figures:
         for k, t in enumerate(shapes.thickness):
-            rows = {
+            shapes_k = {
                 "imaged": traj.points,
                 f"unloaded ({unloaded.name})": shapes.unloaded[-1],
                 f"compressed to {t:g} mm ({compression.name})": shapes.compressed[k, -1],
@@ -59,13 +75,10 @@ def predict(cfg: DictConfig) -> Path:
             title = f"{source.name}: predicted shapes, {t:g} mm"
             written.append(
                 shapes_sections_png(
-                    traj.cells, traj.tissue, rows, title, out / f"preview_{t:g}mm.png"
+                    traj.cells, traj.tissue, shapes_k, title, out / f"preview_{t:g}mm.png"
                 )
             )
-    if cfg.landmarks:
-        path = Path(to_absolute_path(cfg.landmarks))
-        names, points = read_landmarks(path)
-        rows = map_landmarks(traj, shapes, names, points, cfg.source_to_image_mm, str(path))
+    if rows:
         written.append(write_rows(rows, out / "landmarks.csv"))
     print(
         f"{traj.n_nodes} nodes, {len(thickness)} thickness(es): predicted in {1e3 * seconds:.0f} ms"

@@ -90,6 +90,9 @@ def load_surrogate(
     if schema is None:
         raise ValueError(f"{path}: the file has no feature schema; retrain the model")
     schema.check(step or schema.step, str(path))
+    # one node through the model: compiled kernels (numba, torch) are built here, not inside
+    # the first timed prediction
+    predict(np.zeros((1, schema.n_steps, len(schema.features)), np.float32))
     return Surrogate(name, schema, predict)
 
 

@@ -4,6 +4,7 @@ it) through predict.py: deformed VTU files and mapped landmarks, and the predict
 shape compared with the FE's."""
 
 import csv
+import json
 
 import meshio
 import numpy as np
@@ -14,8 +15,10 @@ from test_predictor import _predict_cfg
 import predict
 from datamodules.trajectories import TrajectoryDataModule
 from fem.cohort import run_cohort
+from fem.contract.quality import signed_volume
 from fem.contract.trajectory import Trajectory
 from mammo_net import baselines
+from mammo_net.validity import PhysicallyImpossible
 
 TINY = ("mesher.target_elements=700", "mesher.tolerance=200", "figures=false")
 FEW_STEPS = ("simulation.unloaded_steps=5", "simulation.compression_steps=6")
@@ -80,3 +83,26 @@ def test_a_new_breast_through_predict_py(tiny_cohort, tmp_path):
     # mm from it).
     lesion = np.array([float(row[f"compressed_{c}"]) for c in "xyz"])
     assert np.linalg.norm(lesion - fe.compressed[-1][cell].mean(0)) < 3 * error
+    # checks.json records what the written meshes are (the trees do invert elements here)
+    checks = json.loads((result / "checks.json").read_text())["checks"]["shapes"]
+    assert set(checks) == {"unloaded", f"compressed_{thickness:g}mm"}
+    inverted = int((signed_volume(final, fe.cells) <= 0).sum())
+    assert checks[f"compressed_{thickness:g}mm"]["inverted_elements"] == inverted
+    change = signed_volume(final, fe.cells).sum() / signed_volume(unloaded, fe.cells).sum() - 1
+    assert checks[f"compressed_{thickness:g}mm"]["volume_change"] == pytest.approx(change, abs=1e-4)
+
+
+def test_physical_checks_refuse_before_writing(tiny_cohort, tmp_path):
+    """With checks.on_violation=refuse, a shape outside the tolerances (here: any volume
+    change at all) stops predict.py before its first output file."""
+    out, models, held_out = tiny_cohort
+    cfg = _predict_cfg(
+        tmp_path, tmp_path, f"input={out / f'{held_out[0]}.vtu'}", "thickness=40", "laterality=L",
+        f"unloaded_model={models['unloaded']}", f"compression_model={models['compression']}",
+        "checks.max_volume_change=0", "checks.on_violation=refuse",
+    )  # fmt: skip
+    with pytest.raises(
+        PhysicallyImpossible, match=r"volume changed by .* \(checks.max_volume_change: 0 %\)"
+    ):
+        predict.predict(cfg)
+    assert not [p for p in (tmp_path / "out").iterdir() if not p.name.startswith(".")]

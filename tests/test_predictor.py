@@ -133,7 +133,7 @@ def test_predict_writes_meshes_time_series_preview_and_landmarks(models, tmp_pat
     out = predict.predict(cfg)
     names = sorted(p.name for p in out.iterdir())
     assert names == [
-        "compressed_0.6mm.vtu", "compressed_0.8mm.vtu", "landmarks.csv", "preview_0.6mm.png",
+        "checks.json", "compressed_0.6mm.vtu", "compressed_0.8mm.vtu", "landmarks.csv", "preview_0.6mm.png",
         "preview_0.8mm.png", "trajectory_0.6mm.xdmf", "trajectory_0.8mm.xdmf", "unloaded.vtu",
     ]  # fmt: skip
     shapes = predict_breast(

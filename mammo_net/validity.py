@@ -1,0 +1,176 @@
+"""Is a predicted shape physically possible? Inverted elements, volume change, plate penetration.
+
+A surrogate predicts node positions one node at a time, so nothing stops it from turning a
+tetrahedron inside out, losing volume that nearly incompressible tissue cannot lose, or
+pushing skin through a compression plate. `check_shapes` measures all three on every shape
+that ``predict.py`` writes; `PhysicalChecks` (the ``checks`` settings of ``conf/predict.yaml``)
+decides whether a violation is a warning or refuses the output.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import asdict, dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from fem.contract.quality import signed_volume
+from fem.contract.trajectory import NodeFlag, Trajectory
+from mammo_net.predictor import BreastShapes
+
+
+@dataclass(frozen=True)
+class ShapeCheck:
+    """What one deformed shape does to the mesh it deforms.
+
+    Attributes
+    ----------
+    inverted_elements : int
+        Tetrahedra whose signed volume is not positive.
+    volume_change : float
+        ``V / V_reference - 1`` of the whole mesh (the FE's own change is below 1 %).
+    nodes_beyond_plates : int
+        Skin nodes under a plate that lie inside it by more than the tolerance.
+    max_plate_penetration_mm : float
+        The deepest of them, mm (0 when none).
+    """
+
+    inverted_elements: int
+    volume_change: float
+    nodes_beyond_plates: int = 0
+    max_plate_penetration_mm: float = 0.0
+
+
+def plate_penetration(points: NDArray, skin: NDArray, plates: NDArray) -> NDArray[np.float64]:
+    """How far each skin node lies inside a plate, mm (0 outside both).
+
+    Parameters
+    ----------
+    points : (N, 3) float
+        Node positions, mm.
+    skin : (S,) int
+        Skin node indices.
+    plates : (2, 2) float
+        (y, z) of the lower and the upper plate's chest-side edge; a plate covers ``y >= edge``.
+    """
+    p = points[skin]
+    covered = p[:, 1] >= plates[0, 0]
+    depth = np.maximum(plates[0, 1] - p[:, 2], p[:, 2] - plates[1, 1])
+    return np.where(covered, np.maximum(depth, 0.0), 0.0)
+
+
+def check_shape(
+    cells: NDArray,
+    reference: NDArray,
+    points: NDArray,
+    skin: NDArray | None = None,
+    plates: NDArray | None = None,
+    tolerance_mm: float = 0.5,
+) -> ShapeCheck:
+    """Measure `ShapeCheck` of the shape ``points`` (N, 3) of a mesh whose stress-free
+    shape is ``reference`` (N, 3); plate penetration when ``plates`` (2, 2) is given."""
+    volume = signed_volume(points, cells)
+    change = float(volume.sum() / signed_volume(reference, cells).sum() - 1.0)
+    if plates is None:
+        return ShapeCheck(int((volume <= 0).sum()), change)
+    depth = plate_penetration(points, skin, plates)
+    beyond = depth > tolerance_mm
+    return ShapeCheck(
+        int((volume <= 0).sum()), change, int(beyond.sum()), float(depth.max(initial=0.0))
+    )
+
+
+def check_shapes(
+    traj: Trajectory, shapes: BreastShapes, tolerance_mm: float = 0.5
+) -> dict[str, ShapeCheck]:
+    """The checks of every shape ``predict.py`` writes, by output name: ``unloaded`` (against
+    the imaged mesh) and ``compressed_<t>mm`` (against the unloaded shape, with its plates)."""
+    unloaded = shapes.unloaded[-1].astype(np.float64)
+    out = {"unloaded": check_shape(traj.cells, traj.points, unloaded)}
+    skin = traj.flagged(NodeFlag.SKIN)
+    for k, t in enumerate(shapes.thickness):
+        out[f"compressed_{t:g}mm"] = check_shape(
+            traj.cells,
+            unloaded,
+            shapes.compressed[k, -1].astype(np.float64),
+            skin,
+            shapes.plates[k, -1],
+            tolerance_mm,
+        )
+    return out
+
+
+class PhysicallyImpossible(ValueError):
+    """A predicted shape failed a physical check and the settings refuse it."""
+
+
+@dataclass(frozen=True)
+class PhysicalChecks:
+    """What counts as a physically impossible prediction, and what happens to it.
+
+    This is the ``checks`` node of ``conf/predict.yaml``; its keys are these arguments.
+
+    Parameters
+    ----------
+    max_volume_change : float
+        Largest ``|V / V_reference - 1|`` accepted (tissue is nearly incompressible).
+    plate_tolerance_mm : float
+        Depth inside a plate up to which a skin node counts as on it, mm.
+    on_violation : {"warn", "refuse"}
+        ``warn``: write the output, warn, and record the checks; ``refuse``: raise
+        `PhysicallyImpossible` before anything is written.
+    """
+
+    max_volume_change: float = 0.05
+    plate_tolerance_mm: float = 0.5
+    on_violation: str = "warn"
+
+    def __post_init__(self) -> None:
+        if self.on_violation not in ("warn", "refuse"):
+            raise ValueError(
+                f"checks.on_violation must be 'warn' or 'refuse', got {self.on_violation!r}"
+            )
+
+    def violations(self, checks: dict[str, ShapeCheck]) -> list[str]:
+        """One sentence per failed check."""
+        out = []
+        for name, c in checks.items():
+            if c.inverted_elements:
+                out.append(f"{name}: {c.inverted_elements} inverted tetrahedra")
+            if abs(c.volume_change) > self.max_volume_change:
+                out.append(
+                    f"{name}: volume changed by {100 * c.volume_change:+.1f} % "
+                    f"(checks.max_volume_change: {100 * self.max_volume_change:g} %)"
+                )
+            if c.nodes_beyond_plates:
+                out.append(
+                    f"{name}: {c.nodes_beyond_plates} skin nodes inside a plate, up to "
+                    f"{c.max_plate_penetration_mm:.1f} mm"
+                )
+        return out
+
+    def __call__(self, traj: Trajectory, shapes: BreastShapes) -> dict:
+        """Check every output shape; warn or refuse as configured. Returns the record to store
+        with the output: each shape's `ShapeCheck`, the violations and the settings.
+
+        Raises
+        ------
+        PhysicallyImpossible
+            A check failed and ``on_violation`` is ``refuse``.
+        """
+        checks = check_shapes(traj, shapes, self.plate_tolerance_mm)
+        violations = self.violations(checks)
+        if violations and self.on_violation == "refuse":
+            raise PhysicallyImpossible(
+                f"{traj.source}: the predicted shapes are physically impossible: "
+                + "; ".join(violations)
+                + " (checks.on_violation=warn writes them anyway)"
+            )
+        for v in violations:
+            warnings.warn(f"{traj.source}: {v}", stacklevel=2)
+        return {
+            "shapes": {name: asdict(c) for name, c in checks.items()},
+            "violations": violations,
+            "settings": asdict(self),
+        }
