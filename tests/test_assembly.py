@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 from conftest import assert_exact_derivatives
 
-from fem.breasts.mesh import bcc_lattice, boundary_faces, compact_mesh
+from fem.breasts.mesh import bcc_lattice, compact_mesh
+from fem.contract.quality import boundary_faces
 from fem.engine.assembly import HyperelasticBody, skfem_tangent
 from fem.engine.material import lame_parameters, neo_hookean_pk1
 

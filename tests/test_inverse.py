@@ -21,6 +21,7 @@ from fem.engine.simulation import (
     PAPER_MATERIALS,
     breast_model,
     chest_wall_free_dofs,
+    chest_wall_nodes,
     unloaded_state,
 )
 from fem.engine.solver import GRAVITY_FORCE_DENSITY, load_ramp, nodal_body_force
@@ -146,6 +147,12 @@ def test_input_errors():
     traj = hanging_column()
     with pytest.raises(ValueError, match="relaxation must be"):
         inverse_unloaded_state(traj, FAT_ONLY, relaxation="anderson")
+    unflagged = replace(traj, node_flags=np.zeros_like(traj.node_flags))
+    # without muscle, the flat posterior face (y = 0) is the chest wall, as flagged
+    np.testing.assert_array_equal(
+        chest_wall_nodes(unflagged), traj.flagged(NodeFlag.MUSCLE_INTERFACE)
+    )
+    with_muscle = replace(unflagged, tissue=np.where(np.arange(traj.n_cells) == 0, 3, 1))
     with pytest.raises(ValueError, match="no muscle/breast interface nodes"):
-        inverse_unloaded_state(replace(traj, node_flags=np.zeros_like(traj.node_flags)), FAT_ONLY)
+        inverse_unloaded_state(with_muscle, FAT_ONLY)
     np.testing.assert_allclose(prone_gravity(), [0.0, GRAVITY_FORCE_DENSITY, 0.0])

@@ -2,9 +2,9 @@ import numpy as np
 import pytest
 import skfem
 
-from fem.breasts.mesh import Mesher, bcc_lattice, boundary_faces
+from fem.breasts.mesh import Mesher, bcc_lattice
 from fem.breasts.phantom import PhantomGenerator
-from fem.contract.quality import dihedral_angles, radius_ratio, signed_volume
+from fem.contract.quality import boundary_faces, dihedral_angles, radius_ratio, signed_volume
 from fem.contract.trajectory import TISSUE_BIT, NodeFlag, Tissue
 
 

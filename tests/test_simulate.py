@@ -3,12 +3,16 @@
 import numpy as np
 import pytest
 
+from fem.breasts.mesh import Mesher
+from fem.breasts.phantom import LabelVolume
 from fem.contract.quality import signed_volume
 from fem.contract.trajectory import NodeFlag, Tissue
 from fem.engine.simulation import (
     PAPER_MATERIALS,
     Material,
+    Simulation,
     chest_wall_free_dofs,
+    chest_wall_nodes,
     compression,
     element_moduli,
     unloaded_state,
@@ -134,3 +138,20 @@ def test_clamped_nodes_instead_of_the_chest_wall(breast_mesh, tmp_path):
         Simulation(fixed_nodes=str(tmp_path / "bad.txt"), compression_ratio=0.3)(bare)
     with pytest.raises(ValueError, match=r"missing\.txt: cannot read fixed node indices"):
         Simulation(fixed_nodes=str(tmp_path / "missing.txt"), compression_ratio=0.3)(bare)
+
+
+def test_a_breast_without_muscle_hangs_on_its_posterior_cut(ellipsoid_volume):
+    """A segmentation cropped at the chest wall (no muscle label): its flat posterior cut face
+    is the chest wall, not skin, and both steps run with its nodes held along y."""
+    labels = np.where(ellipsoid_volume.labels == Tissue.MUSCLE, 0, ellipsoid_volume.labels)
+    volume = LabelVolume(labels.astype(np.uint8), ellipsoid_volume.affine, "cropped.nii")
+    traj = Mesher(target_elements=1500, tolerance=500)(volume, {"source": "cropped.nii"})
+    chest = chest_wall_nodes(traj)
+    y = traj.points[:, 1]
+    assert chest.size > 20 and np.ptp(y[chest]) < 5.0 and y[chest].min() == y.min()  # ~9 mm edges
+    skin_y = traj.points[traj.skin, 1].max(1)  # no skin triangle lies on the cut
+    assert skin_y.min() > y.min() + 1e-9
+    result = Simulation(unloaded_steps=2, compression_steps=3, compression_ratio=0.3)(traj)
+    np.testing.assert_allclose(result.unloaded[:, chest, 1], np.tile(traj.points[chest, 1], (2, 1)))
+    assert result.metadata["simulation"]["compression_ratio"] == pytest.approx(0.3)
+    assert result.metadata["simulation"]["min_element_volume_ratio"] > 0

@@ -24,13 +24,19 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import skfem
 from numpy.typing import NDArray
 from scipy import ndimage, sparse
 from scipy.sparse import csgraph
 
 from fem.breasts.phantom import LabelVolume
-from fem.contract.quality import check_cells, quality_report, radius_ratio, signed_volume
+from fem.contract.quality import (
+    boundary_faces,
+    check_cells,
+    posterior_cut,
+    quality_report,
+    radius_ratio,
+    signed_volume,
+)
 from fem.contract.trajectory import TISSUE_BIT, NodeFlag, Tissue, Trajectory
 
 #: Fixed barycentric sample points (64 per element, uniform in the tetrahedron).
@@ -128,29 +134,6 @@ def bcc_lattice(
     neg = signed_volume(points, cells) < 0
     cells[neg] = cells[neg][:, [0, 1, 3, 2]]
     return points, cells
-
-
-def boundary_faces(points: NDArray, cells: NDArray) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-    """Boundary triangles (outward oriented) and the element owning each, via scikit-fem.
-
-    Returns
-    -------
-    faces : (F, 3) int64
-    owner : (F,) int64
-    """
-    if len(cells) == 0:
-        return np.zeros((0, 3), np.int64), np.zeros(0, np.int64)
-    m = skfem.MeshTet(np.ascontiguousarray(points.T), np.ascontiguousarray(cells.T))
-    bf = m.boundary_facets()
-    faces = m.facets[:, bf].T.astype(np.int64)
-    owner = m.f2t[0, bf].astype(np.int64)
-    # Orient outward: the owner's fourth vertex must lie behind the face.
-    p = points[faces]
-    normal = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
-    opposite = points[cells[owner]].sum(1) - p.sum(1)  # the vertex not on the face
-    flip = np.einsum("ij,ij->i", normal, opposite - p[:, 0]) > 0
-    faces[flip] = faces[flip][:, [0, 2, 1]]
-    return faces, owner
 
 
 def _node_cell_matrix(n_nodes: int, cells: NDArray) -> sparse.csr_matrix:
@@ -337,7 +320,9 @@ def annotate(
     """Build the mesh-only `Trajectory`: node tissue codes, node flags and skin triangles.
 
     * node code: OR of `TISSUE_BIT` over the elements sharing the node (paper Table 2);
-    * skin: boundary triangles of fat/gland elements; ``SKIN`` flags their nodes;
+    * skin: boundary triangles of fat/gland elements; ``SKIN`` flags their nodes; a breast
+      without muscle elements (a segmentation cropped at the chest wall) has its flat
+      posterior cut face (`posterior_cut`) left out: that face is its chest wall;
     * ``MUSCLE_INTERFACE``: nodes shared by muscle and fat/gland elements;
     * ``UPPER_CONTACT`` / ``LOWER_CONTACT``: skin nodes whose area-weighted normal points
       cranially (+z) / caudally (-z), i.e. that can meet the upper / lower plate;
@@ -356,6 +341,8 @@ def annotate(
         np.bitwise_or.at(code, cells[:, k], bits)
     faces, owner = boundary_faces(points, cells)
     skin = faces[tissue[owner] != Tissue.MUSCLE]
+    if not (tissue == Tissue.MUSCLE).any():  # the chest wall is the image's posterior cut
+        skin = skin[~posterior_cut(points, skin)]
     flags = np.zeros(n, np.uint8)
     flags[np.unique(faces)] |= np.uint8(NodeFlag.BOUNDARY)
     flags[np.unique(skin)] |= np.uint8(NodeFlag.SKIN)

@@ -1,8 +1,10 @@
-"""Geometric quality of linear tetrahedra: signed volume, dihedral angles, radius ratio."""
+"""Geometry of linear tetrahedral meshes: signed volume, dihedral angles, radius ratio,
+boundary faces."""
 
 from __future__ import annotations
 
 import numpy as np
+import skfem
 from numpy.typing import NDArray
 
 #: Local vertex pairs of the six edges, and for each edge the two faces (by opposite vertex)
@@ -110,3 +112,53 @@ def check_cells(
             f"{source}: {bad.size} degenerate tetrahedra (radius ratio < {min_radius_ratio}), "
             f"first cells {bad[:5].tolist()}"
         )
+
+
+def boundary_faces(points: NDArray, cells: NDArray) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Boundary triangles (outward oriented) and the element owning each, via scikit-fem.
+
+    Returns
+    -------
+    faces : (F, 3) int64
+    owner : (F,) int64
+    """
+    if len(cells) == 0:
+        return np.zeros((0, 3), np.int64), np.zeros(0, np.int64)
+    m = skfem.MeshTet(np.ascontiguousarray(points.T), np.ascontiguousarray(cells.T))
+    bf = m.boundary_facets()
+    faces = m.facets[:, bf].T.astype(np.int64)
+    owner = m.f2t[0, bf].astype(np.int64)
+    # Orient outward: the owner's fourth vertex must lie behind the face.
+    p = points[faces]
+    normal = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    opposite = points[cells[owner]].sum(1) - p.sum(1)  # the vertex not on the face
+    flip = np.einsum("ij,ij->i", normal, opposite - p[:, 0]) > 0
+    faces[flip] = faces[flip][:, [0, 2, 1]]
+    return faces, owner
+
+
+def posterior_cut(
+    points: NDArray, faces: NDArray, max_angle_deg: float = 45.0, depth_mm: float = 3.0
+) -> NDArray[np.bool_]:
+    """Which boundary triangles lie on the flat posterior cut of a breast without muscle.
+
+    A triangle is on the cut when its outward normal is within ``max_angle_deg`` of posterior
+    (-y, RAS+) and its centroid within ``depth_mm`` of the most posterior boundary point: the
+    plane where a segmentation is cropped at the chest wall.
+
+    Parameters
+    ----------
+    points : (N, 3) float
+        Node coordinates, mm.
+    faces : (F, 3) int
+        Outward-oriented boundary triangles.
+
+    Returns
+    -------
+    (F,) bool
+    """
+    p = points[faces]
+    normal = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
+    facing = normal[:, 1] < -np.cos(np.radians(max_angle_deg))
+    return facing & (p[:, :, 1].mean(1) <= p[:, :, 1].min() + depth_mm)

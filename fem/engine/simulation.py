@@ -29,7 +29,7 @@ from typing import TypeVar
 import numpy as np
 from numpy.typing import NDArray
 
-from fem.contract.quality import signed_volume
+from fem.contract.quality import boundary_faces, posterior_cut, signed_volume
 from fem.contract.trajectory import NodeFlag, Tissue, Trajectory
 from fem.engine.assembly import HyperelasticBody, Model
 from fem.engine.contact import RigidPlate
@@ -98,26 +98,39 @@ def element_moduli(
     return mu, kappa
 
 
+def chest_wall_nodes(traj: Trajectory) -> NDArray[np.int64]:
+    """The breast's nodes on the chest wall: the muscle/breast interface (``MUSCLE_INTERFACE``
+    nodes), or for a breast without muscle elements or such nodes the nodes of its flat
+    posterior cut face (`fem.contract.quality.posterior_cut`), where a segmentation cropped at
+    the chest wall ends."""
+    interface = traj.flagged(NodeFlag.MUSCLE_INTERFACE)
+    if interface.size or (traj.tissue == Tissue.MUSCLE).any():
+        return interface
+    faces, _ = boundary_faces(traj.points, traj.cells)
+    return np.unique(faces[posterior_cut(traj.points, faces)])
+
+
 def chest_wall_free_dofs(
     traj: Trajectory, source: str = "mesh", translations: tuple[int, ...] = (0, 2)
 ) -> NDArray[np.bool_]:
-    """Free-DOF mask (N, 3): interface nodes fixed along y, plus load-free rigid-body pins.
+    """Free-DOF mask (N, 3): chest-wall nodes (`chest_wall_nodes`) fixed along y, plus
+    load-free rigid-body pins.
 
-    The pins: the interface node nearest the interface centroid is fixed along the axes in
+    The pins: the chest-wall node nearest their centroid is fixed along the axes in
     ``translations`` (x and z for the unloaded state; x only under the plates, which hold z);
-    the interface node farthest from it in z is fixed in x, which stops the spin about y.
+    the chest-wall node farthest from it in z is fixed in x, which stops the spin about y.
     Neither carries load when the loads act along y (step 1) or z (step 2).
 
     Raises
     ------
     ValueError
-        The mesh has no muscle/breast interface nodes.
+        The mesh has no chest-wall nodes.
     """
-    interface = traj.flagged(NodeFlag.MUSCLE_INTERFACE)
+    interface = chest_wall_nodes(traj)
     if interface.size < 2:
         raise ValueError(
-            f"{source}: no muscle/breast interface nodes (field 'node_flags'): the chest-wall boundary "
-            "condition needs muscle elements in contact with fat or gland"
+            f"{source}: no muscle/breast interface nodes (field 'node_flags') and no flat "
+            "posterior cut face: no chest wall to hold; give its nodes as simulation.fixed_nodes"
         )
     free = np.ones((traj.n_nodes, 3), bool)
     free[interface, AP_AXIS] = False
@@ -140,7 +153,7 @@ def boundary_free_dofs(
     Raises
     ------
     ValueError
-        A ``fixed`` index outside the mesh, or no interface nodes without ``fixed``.
+        A ``fixed`` index outside the mesh, or no chest-wall nodes without ``fixed``.
     """
     if fixed is None:
         return chest_wall_free_dofs(traj, source, translations)
@@ -167,7 +180,7 @@ def unloaded_state(
     """Step 1: reverse the prone gravity, ramped, recording ``n_steps`` equal load steps.
 
     ``fixed`` (node indices) clamps those nodes instead of the chest-wall condition
-    (`chest_wall_free_dofs`), for meshes without muscle/breast interface nodes.
+    (`chest_wall_free_dofs`), for meshes without a chest wall of their own.
 
     Returns
     -------
@@ -244,7 +257,7 @@ def plate_schedule(
 ) -> PlateSchedule:
     """The plates that compress the unloaded shape ``start`` (N, 3) of ``traj``'s mesh to
     ``compressed_thickness`` (mm). Their chest-side edge is at the most posterior
-    muscle-interface node, or, with clamped nodes ``fixed``, at the most anterior of those.
+    chest-wall node, or, with clamped nodes ``fixed``, at the most anterior of those.
 
     Raises
     ------
@@ -255,7 +268,7 @@ def plate_schedule(
     bottom, top = float(skin_z.min()), float(skin_z.max())
     _check_thickness(compressed_thickness, top - bottom, traj.source)
     if fixed is None:  # the plates reach back to the (sliding) chest wall
-        edge = float(start[traj.flagged(NodeFlag.MUSCLE_INTERFACE), AP_AXIS].min())
+        edge = float(start[chest_wall_nodes(traj), AP_AXIS].min())
     else:  # ... or stop in front of the clamped nodes, which they could only crush
         edge = float(start[np.asarray(fixed), AP_AXIS].max())
     return PlateSchedule(bottom, top, float(compressed_thickness), edge)
@@ -279,7 +292,7 @@ def compression(
     the lowest skin node (the inframammary fold); the upper plate starts at the highest skin
     node (first contact) and moves down to ``compressed_thickness`` above the lower one in
     ``n_steps`` recorded steps. Both plates reach back to the chest wall (their chest-side
-    edge is at the most posterior muscle-interface node). The standing patient's gravity
+    edge is at the most posterior chest-wall node). The standing patient's gravity
     along -z (when ``gravity`` is true) is ramped with the plate travel. Both plates have the
     Coulomb coefficient ``friction`` (0: frictionless). ``fixed`` as in `unloaded_state`
     (the plate edges are then at the most anterior clamped node).
@@ -429,7 +442,7 @@ class Simulation:
         SimulationFailed
             A step did not converge (the reason names the load factor and Newton's trouble).
         ValueError
-            Bad input (missing material, no interface nodes, no compression ratio).
+            Bad input (missing material, no chest wall, no compression ratio).
         """
         source = traj.source
         ratio = self.target_ratio(traj)
