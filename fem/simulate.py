@@ -19,6 +19,7 @@ from hydra.utils import instantiate, to_absolute_path
 from omegaconf import DictConfig
 
 from fem import CONFIG_DIR
+from fem.contract.atomic import writable_folder
 from fem.contract.timeseries import write_time_series
 
 
@@ -30,9 +31,10 @@ def simulate_file(cfg: DictConfig) -> Path:
         if cfg.output
         else source.with_name(source.name.split(".")[0] + "_simulated")
     )
+    simulation = instantiate(cfg.simulation)  # settings checked before any work
+    writable_folder(stem.parent)
     traj = instantiate(cfg.reader)(source)
-    simulated = instantiate(cfg.simulation)(traj)
-    stem.parent.mkdir(parents=True, exist_ok=True)
+    simulated = simulation(traj)
     if cfg.time_series:
         write_time_series(simulated, stem.with_suffix(".xdmf"))
     simulated.save(stem.with_suffix(".npz"))

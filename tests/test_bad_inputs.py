@@ -56,3 +56,20 @@ def test_bad_run_folder_settings_name_the_file_and_field(tmp_path, data, message
 def test_a_folder_without_run_config_is_named(tmp_path):
     with pytest.raises(FileNotFoundError, match=r"config.yaml: not found; is .* a train.py run"):
         TrajectoryDataModule.from_run(tmp_path)
+
+
+def test_an_unwritable_output_folder_is_refused_before_the_fe_run(tmp_path, monkeypatch):
+    """fem.simulate checks its output folder before simulating (not after minutes of FE)."""
+    from hydra import compose, initialize_config_dir
+
+    from fem import CONFIG_DIR
+    from fem.engine import simulation
+    from fem.simulate import simulate_file
+
+    blocked = tmp_path / "file"
+    blocked.write_text("")  # a file where the output folder should be
+    monkeypatch.setattr(simulation.Simulation, "__call__", lambda *_: pytest.fail("simulated"))
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+        cfg = compose("simulate", [f"input={tmp_path / 'in.vtu'}", f"output={blocked / 'case'}"])
+    with pytest.raises(PermissionError, match=r"file: cannot write output files there"):
+        simulate_file(cfg)
