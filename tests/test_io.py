@@ -243,9 +243,10 @@ def test_commands_share_the_reader_group(command):
         cfg = compose(command, overrides=overrides)
     assert not {"label_map", "spacing", "tissue_field", "mesher"} & set(cfg)
     expected = BreastReader(
-        {"background": 0, "fat": 1, "gland": [2, 4], "muscle": 3},
+        {"background": 0, "fat": 1, "gland": [2, 4], "muscle": 3, "skin": []},
         [1.0, 1.0, 1.0],
         "tissue",
         Mesher(target_elements=900),
+        extent_mm=[20.0, 500.0],
     )
     assert instantiate(cfg.reader) == expected
