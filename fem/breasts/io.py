@@ -691,8 +691,8 @@ class BreastReader:
             if (self.units, self.orientation) != ("mm", None):
                 raise ValueError(
                     f"{path}: a trajectory file is in mm and RAS+; reader.units={self.units} "
-                    f"and reader.orientation={self.orientation} apply to segmentations and "
-                    "meshes only: leave them at mm and null"
+                    f"and reader.orientation={self.orientation or 'null'} apply to "
+                    "segmentations and meshes only: leave them at mm and null"
                 )
             traj = Trajectory.load(path)
         else:

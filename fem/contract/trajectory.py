@@ -48,6 +48,9 @@ FILE_SIGNATURES = {
     b"<": "XML text",
 }
 
+#: Fields of a trajectory file holding indices, labels or bits: integer arrays.
+_INTEGER_FIELDS = ("cells", "tissue", "node_tissue_code", "node_flags", "skin")
+
 
 class Tissue(IntEnum):
     """Canonical tissue labels of voxels and elements."""
@@ -240,10 +243,6 @@ class Trajectory:
         return traj
 
 
-#: Fields holding indices, labels or bits: integer arrays.
-_INTEGER_FIELDS = ("cells", "tissue", "node_tissue_code", "node_flags", "skin")
-
-
 def _numeric_field(array: NDArray, name: str, path: Path) -> NDArray:
     """``array`` if it has the kind of numbers field ``name`` holds, else a ``ValueError``."""
     kinds = "iu" if name in _INTEGER_FIELDS else "iuf"
@@ -318,13 +317,15 @@ def reading_file(
     try:
         yield path
     except Exception as exc:
-        if "allow_pickle" in str(exc):  # NumPy's message would suggest unsafe loading
-            problem = "it holds pickled Python objects, which are never loaded"
-        elif magic:
-            problem = f"the file is truncated or corrupt ({_first_line(exc)})"
-        else:
-            problem = f"the file is truncated, corrupt or not {what} ({_first_line(exc)})"
-        raise ValueError(f"{path}: cannot be read as {what}: {problem}") from exc
+        if "allow_pickle" in str(exc):  # NumPy's message (not chained) suggests unsafe loading
+            raise ValueError(
+                f"{path}: cannot be read as {what}: it holds pickled Python objects, which are "
+                "never loaded"
+            ) from None
+        problem = "truncated or corrupt" if magic else f"truncated, corrupt or not {what}"
+        raise ValueError(
+            f"{path}: cannot be read as {what}: the file is {problem} ({_first_line(exc)})"
+        ) from exc
 
 
 def read_npz(path: str | Path, what: str = "a NumPy .npz archive") -> dict[str, NDArray]:
