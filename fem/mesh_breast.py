@@ -3,9 +3,16 @@
     python -m fem.mesh_breast input=case01.nii.gz reader.label_map.gland=[2,4] output=out/case01
 
 The input is read by the ``reader`` group (`fem.breasts.io.BreastReader`; options
-``reader.label_map``, ``reader.spacing``, ``reader.tissue_field``, ``reader.mesher.*``).
-Writes ``<output>.vtu`` (ParaView, tissue fields), ``<output>.npz`` (the `Trajectory`) and,
-with ``figures=true``, ``<output>.png`` (body-plane sections), each atomically.
+``reader.label_map``, ``reader.spacing``, ``reader.units``, ``reader.orientation``,
+``reader.extent_mm``, ``reader.tissue_field``, ``reader.mesher.*``), which checks every
+setting and the file before any output is written: a bad input leaves no file. Writes
+``<output>.vtu`` (ParaView, tissue fields), ``<output>.npz`` (the `Trajectory`) and, with
+``figures=true``, ``<output>.png`` (body-plane sections, axes labelled with the body
+directions), each atomically. A mesh whose volume misses the segmentation's by more than 5 %
+is written with a warning (`fem.breasts.io.warn_volume_error`).
+
+    python -m fem.mesh_breast input=ct.nrrd reader.orientation=RSA reader.label_map.skin=3 \
+        reader.label_map.muscle=[]
 """
 
 from __future__ import annotations

@@ -9,6 +9,7 @@ log their errors under the network's metric names.
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -23,6 +24,10 @@ from sklearn.tree._tree import NODE_DTYPE, Tree
 
 from datamodules.features import FeatureSchema
 from fem.contract.atomic import atomic_path
+from fem.contract.trajectory import read_npz, reading_file
+
+#: The arrays of a `Forest` file.
+FOREST_FIELDS = ("left", "right", "feature", "threshold", "value", "roots")
 
 
 def stack_rows(rows: Iterable[tuple[NDArray, NDArray]]) -> tuple[NDArray, NDArray]:
@@ -100,6 +105,15 @@ class Forest:
             total += self.value[node]
         return (total / len(self.roots)).astype(np.float32)
 
+    def validate(self, source: str = "forest", n_features: int | None = None) -> None:
+        """Raise ``ValueError`` naming ``source`` unless the arrays are a forest that
+        `predict` and `compiled` can traverse: integer links, every tree's nodes contiguous
+        from its root, children after their parent within the tree (no cycle), features
+        below ``n_features`` (when known), finite thresholds and values."""
+        problem = _forest_problem(self, n_features)
+        if problem:
+            raise ValueError(f"{source}: not a valid ERT forest: {problem}")
+
     def compiled(
         self, n_features: int, threads: int = 2
     ) -> Callable[[NDArray], NDArray[np.float32]]:
@@ -131,6 +145,38 @@ class Forest:
                 return (sum(sums) / len(trees)).astype(np.float32)
 
         return predict
+
+
+def _forest_problem(forest: Forest, n_features: int | None) -> str | None:
+    """What is wrong with ``forest``'s arrays (`Forest.validate`), or None."""
+    for name in FOREST_FIELDS:
+        kinds = "iuf" if name in ("threshold", "value") else "iu"
+        if getattr(forest, name).dtype.kind not in kinds:
+            return f"field '{name}' holds {getattr(forest, name).dtype} values"
+    left, right, feature, roots = forest.left, forest.right, forest.feature, forest.roots
+    if left.ndim != 1 or roots.ndim != 1 or not left.size or not roots.size:
+        return "fields 'left' and 'roots' must be non-empty 1-D arrays"
+    n = len(left)
+    shapes = {"right": (n,), "feature": (n,), "threshold": (n,), "value": (n, 3)}
+    for name, shape in shapes.items():
+        if getattr(forest, name).shape != shape:
+            return f"field '{name}' has shape {getattr(forest, name).shape}, expected {shape}"
+    if roots[0] != 0 or (np.diff(roots) <= 0).any() or roots[-1] >= n:
+        return "field 'roots' must start at 0 and increase within the nodes"
+    inner = left >= 0
+    node = np.flatnonzero(inner)
+    end = np.append(roots[1:], n)[np.searchsorted(roots, node, side="right") - 1]
+    leaf_ok = (left[~inner] == -1) & (right[~inner] == -1)
+    links_ok = [(node < c) & (c < end) for c in (left[inner], right[inner])]
+    if not leaf_ok.all() or not all(ok.all() for ok in links_ok):
+        return "children must follow their parent within its tree (leaves: -1)"
+    if (feature[inner] < 0).any():
+        return "a split feature is negative"
+    if n_features is not None and (feature[inner] >= n_features).any():
+        return f"a split feature is not below the schema's {n_features} features"
+    if not (np.isfinite(forest.threshold).all() and np.isfinite(forest.value).all()):
+        return "thresholds and values must be finite"
+    return None
 
 
 def fit_ert(
@@ -194,21 +240,38 @@ def save_forest(forest: Forest, path: str | Path, schema: FeatureSchema | None =
 
 
 def load_forest(path: str | Path) -> Forest:
-    """Read a `Forest` written by `save_forest` (never unpickles)."""
-    with np.load(path, allow_pickle=False) as z:
-        return Forest(
-            **{k: z[k] for k in ("left", "right", "feature", "threshold", "value", "roots")}
+    """Read a `Forest` written by `save_forest` (never unpickles), checked
+    (`Forest.validate`, split features within the stored schema's).
+
+    Raises
+    ------
+    FileNotFoundError
+        The file does not exist.
+    ValueError
+        An empty, truncated or corrupt file, another kind of file, an ``.npz`` without the
+        forest's arrays, or arrays that are not a valid forest.
+    """
+    arrays = read_npz(path, "an ERT model (.npz)")
+    missing = [k for k in FOREST_FIELDS if k not in arrays]
+    if missing:
+        raise ValueError(
+            f"{path}: not an ERT model file: field(s) {', '.join(map(repr, missing))} missing "
+            f"(fields: {', '.join(sorted(arrays)) or 'none'})"
         )
+    forest = Forest(**{k: arrays[k] for k in FOREST_FIELDS})
+    schema = _stored_schema(arrays, path)
+    forest.validate(str(path), None if schema is None else len(schema.features))
+    return forest
+
+
+def _stored_schema(arrays: dict[str, NDArray], path: str | Path) -> FeatureSchema | None:
+    text = arrays.get("feature_schema")
+    return None if text is None else FeatureSchema.from_json(str(text), str(path))
 
 
 def forest_schema(path: str | Path) -> FeatureSchema | None:
-    """The feature schema stored by `save_forest`, if any."""
-    with np.load(path, allow_pickle=False) as z:
-        return (
-            FeatureSchema.from_json(str(z["feature_schema"]), str(path))
-            if "feature_schema" in z
-            else None
-        )
+    """The feature schema stored by `save_forest`, if any (errors as `load_forest`)."""
+    return _stored_schema(read_npz(path, "an ERT model (.npz)"), path)
 
 
 def save_xgboost(model: xgb.Booster, path: str | Path, schema: FeatureSchema | None = None) -> Path:
@@ -224,8 +287,28 @@ def save_xgboost(model: xgb.Booster, path: str | Path, schema: FeatureSchema | N
 
 
 def load_xgboost(path: str | Path) -> xgb.Booster:
+    """Read a model written by `save_xgboost` (XGBoost's JSON or UBJSON, by suffix; never
+    unpickles), checked to be a tree booster with the three outputs x, y, z.
+
+    Raises
+    ------
+    FileNotFoundError
+        The file does not exist.
+    ValueError
+        An empty, truncated or corrupt file, another kind of file, or another model (a
+        linear booster, another number of outputs).
+    """
     model = xgb.Booster()
-    model.load_model(str(path))
+    with reading_file(path, "an XGBoost model (.json/.ubj)", b"{") as p:
+        model.load_model(str(p))
+        learner = json.loads(model.save_config())["learner"]
+        booster = learner["gradient_booster"]["name"]
+        n_targets = int(learner["learner_model_param"].get("num_target", 1))
+    if booster != "gbtree" or n_targets != 3:
+        raise ValueError(
+            f"{path}: another model: an XGBoost {booster} booster with {n_targets} output(s), "
+            "not a tree model of the three coordinates x, y, z as train.py writes"
+        )
     return model
 
 

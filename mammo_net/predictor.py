@@ -30,7 +30,7 @@ from fem.breasts.io import write_mesh
 from fem.contract.atomic import atomic_path
 from fem.contract.landmarks import SOURCE_TO_IMAGE_MM, carry, locate, project_cc
 from fem.contract.timeseries import write_time_series
-from fem.contract.trajectory import Trajectory
+from fem.contract.trajectory import Trajectory, reading_file
 from fem.engine.simulation import plate_schedule
 from mammo_net import baselines
 from mammo_net.inference import network_predictor, save_predictions
@@ -261,11 +261,14 @@ def read_landmarks(path: str | Path) -> tuple[list[str], NDArray[np.float64]]:
 
     Raises
     ------
+    FileNotFoundError
+        The file does not exist.
     ValueError
-        No landmark, a missing column, or a coordinate that is not a number.
+        An empty file or not a text CSV, no landmark, a missing column, or a coordinate that
+        is not a number.
     """
     path = Path(path)
-    with open(path, newline="") as f:
+    with reading_file(path, "a landmark CSV") as p, open(p, newline="") as f:
         rows = list(csv.DictReader(f))
     if not rows:
         raise ValueError(f"{path}: no landmarks (expected a header x,y,z and one row per point)")

@@ -8,8 +8,17 @@ import numpy as np
 import pytest
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
+from scipy import ndimage
 
-from fem.breasts.io import BreastReader, file_kind, read_mesh, read_segmentation, write_mesh
+from fem.breasts.figures import AXIS_NAMES
+from fem.breasts.io import (
+    BreastReader,
+    file_kind,
+    orientation_matrix,
+    read_mesh,
+    read_segmentation,
+    write_mesh,
+)
 from fem.breasts.mesh import Mesher
 from fem.contract.trajectory import Tissue, Trajectory
 
@@ -243,9 +252,110 @@ def test_commands_share_the_reader_group(command):
         cfg = compose(command, overrides=overrides)
     assert not {"label_map", "spacing", "tissue_field", "mesher"} & set(cfg)
     expected = BreastReader(
-        {"background": 0, "fat": 1, "gland": [2, 4], "muscle": 3},
+        {"background": 0, "fat": 1, "gland": [2, 4], "muscle": 3, "skin": []},
         [1.0, 1.0, 1.0],
         "tissue",
         Mesher(target_elements=900),
+        extent_mm=[20.0, 500.0],
     )
     assert instantiate(cfg.reader) == expected
+
+
+# --- units, orientation, skin, the volume warning ---------------------------------------------
+
+
+@pytest.mark.parametrize(("units", "factor"), [("m", 1e-3), ("cm", 0.1)])
+def test_a_mesh_in_other_units_is_read_in_mm(tmp_path, breast_mesh, units, factor):
+    m = meshio.Mesh(
+        breast_mesh.points * factor,
+        [("tetra", breast_mesh.cells)],
+        cell_data={"tissue": [breast_mesh.tissue]},
+    )
+    meshio.write(tmp_path / "breast.vtu", m)
+    back = BreastReader(units=units)(tmp_path / "breast.vtu")
+    np.testing.assert_allclose(back.points, breast_mesh.points, rtol=1e-12)
+    np.testing.assert_array_equal(back.node_flags, breast_mesh.node_flags)
+
+
+def test_a_segmentation_in_metres_is_read_in_mm(tmp_path, ellipsoid_volume):
+    affine = ellipsoid_volume.affine.copy()
+    affine[:3] *= 1e-3
+    nibabel.save(nibabel.Nifti1Image(ellipsoid_volume.labels, affine), str(tmp_path / "m.nii"))
+    volume = read_segmentation(tmp_path / "m.nii", units="m")
+    np.testing.assert_allclose(volume.affine, ellipsoid_volume.affine, atol=1e-12)
+
+
+def _breast_axes(volume):
+    """Mean RAS+ position of the fat and of the muscle voxels, mm."""
+    ijk = {t: np.argwhere(volume.labels == t) for t in (Tissue.FAT, Tissue.MUSCLE)}
+    return {t: (v @ volume.affine[:3, :3].T + volume.affine[:3, 3]).mean(0) for t, v in ijk.items()}
+
+
+@pytest.mark.parametrize(("code", "flip"), [("RSA", False), ("RSP", True)])
+def test_orientation_setting_turns_a_breast_ct_volume(tmp_path, ellipsoid_volume, code, flip):
+    """A breast-CT-style array whose third axis runs front-wards ("RSA") or back-wards ("RSP"),
+    in an NRRD whose header claims plain RAS axes: only reader.orientation makes it right."""
+    data = ellipsoid_volume.labels.transpose(0, 2, 1)  # axes: right, superior, anterior
+    data = data[:, :, ::-1] if flip else data
+    nrrd.write(str(tmp_path / "ct.nrrd"), np.ascontiguousarray(data), {"space": "RAS"})
+    trusted = _breast_axes(read_segmentation(tmp_path / "ct.nrrd"))
+    assert trusted[Tissue.FAT][1] == pytest.approx(trusted[Tissue.MUSCLE][1], abs=1)  # y lost
+    volume = read_segmentation(tmp_path / "ct.nrrd", orientation=code)
+    centre = _breast_axes(volume)
+    assert centre[Tissue.FAT][1] > centre[Tissue.MUSCLE][1] + 15  # anterior is +y
+    np.testing.assert_array_equal(volume.labels, ellipsoid_volume.labels)  # RAS axis order
+    np.testing.assert_allclose(volume.affine[:3, :3], np.eye(3))
+
+
+def test_orientation_of_a_mesh_and_the_codes(tmp_path, breast_mesh):
+    np.testing.assert_array_equal(orientation_matrix("LPS"), np.diag([-1.0, -1.0, 1.0]))
+    np.testing.assert_array_equal(orientation_matrix("ras"), np.eye(3))
+    m = meshio.Mesh(
+        breast_mesh.points * [-1, 1, 1],  # x grows to the left: a mirror
+        [("tetra", breast_mesh.cells)],
+        cell_data={"tissue": [breast_mesh.tissue]},
+    )
+    meshio.write(tmp_path / "las.vtu", m)
+    back = read_mesh(tmp_path / "las.vtu", orientation="LAS")
+    np.testing.assert_allclose(back.points, breast_mesh.points)
+    np.testing.assert_array_equal(back.skin.shape, breast_mesh.skin.shape)
+
+
+def test_the_sections_name_the_body_directions():
+    assert [name.split()[-1] for name in AXIS_NAMES] == ["right", "anterior", "superior"]
+
+
+def test_a_skin_label_is_breast(tmp_path, ellipsoid_volume):
+    """The image's skin (value 3 here, muscle 4) is meshed as fat, under the skin membrane."""
+    labels = ellipsoid_volume.labels
+    breast = np.isin(labels, (Tissue.FAT, Tissue.GLAND))
+    skin = breast & ~ndimage.binary_erosion(breast)
+    data = np.where(labels == Tissue.MUSCLE, 4, labels).astype(np.int16)
+    data[skin] = 3
+    np.save(tmp_path / "skin.npy", data)
+    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
+        cfg = compose(
+            "mesh_breast",
+            overrides=[
+                f"input={tmp_path / 'skin.npy'}",
+                "reader.label_map.skin=3",
+                "reader.label_map.muscle=4",
+                "reader.mesher.target_elements=900",
+                "reader.mesher.tolerance=150",
+            ],
+        )
+    mesh, volume = instantiate(cfg.reader).read(tmp_path / "skin.npy")
+    np.testing.assert_array_equal(volume.labels, labels)
+    assert set(np.unique(mesh.tissue)) == {1, 2, 3}
+
+
+def test_a_coarse_mesh_warns_of_its_volume_error(tmp_path, ellipsoid_volume, recwarn):
+    np.save(tmp_path / "seg.npy", ellipsoid_volume.labels)
+    BreastReader(mesher=Mesher(target_elements=900, tolerance=150))(tmp_path / "seg.npy")
+    assert not recwarn.list  # a mesh within 5 % of the segmentation's volume
+    coarse = BreastReader(mesher=Mesher(target_elements=200, tolerance=100))
+    with pytest.warns(UserWarning, match=r"seg\.npy: the mesh's volume .* misses") as info:
+        traj = coarse(tmp_path / "seg.npy")
+    error = traj.metadata["mesh"]["volume_error"]
+    assert abs(error) > 0.05 and f"{100 * error:+.1f} %" in str(info[0].message)
+    assert "reader.mesher.target_elements (now 200)" in str(info[0].message)

@@ -25,7 +25,9 @@ TISSUE_NAMES = ["background", "fat", "gland", "muscle"]
 
 #: Body planes: name -> (axis normal to the plane, (horizontal axis, vertical axis)), RAS+.
 PLANES = {"sagittal": (0, (1, 2)), "axial": (2, (0, 1)), "coronal": (1, (0, 2))}
-AXIS_NAMES = ("x (R) [mm]", "y (A) [mm]", "z (S) [mm]")
+#: Axis labels: the coordinate and the body direction it grows to (patient's right, anterior,
+#: superior), so that a wrongly oriented input shows in the figures.
+AXIS_NAMES = ("x [mm] \u2192 right", "y [mm] \u2192 anterior", "z [mm] \u2192 superior")
 
 
 def plane_section(

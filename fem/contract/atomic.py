@@ -28,22 +28,23 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
 
 
 def writable_folder(path: str | Path) -> Path:
-    """Create the folder ``path`` if needed and check that files can be written there, before
-    any long work whose results would otherwise be lost.
+    """Check, before any long work whose results would otherwise be lost, that the folder
+    ``path`` can be written or created; nothing is created here.
 
     Raises
     ------
     PermissionError
-        The folder cannot be created or written; the message names it.
+        The folder, or the nearest existing folder above it, is not a writable folder (or is
+        a file); the message names it.
     """
-    path = Path(path)
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-        with atomic_path(path / ".write-test") as tmp:
-            tmp.write_bytes(b"")
-        (path / ".write-test").unlink()
-    except OSError as exc:
-        raise PermissionError(f"{path}: cannot write output files there ({exc})") from exc
+    path = Path(path).absolute()
+    existing = next(p for p in (path, *path.parents) if p.exists())
+    if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
+        raise PermissionError(
+            f"{existing}: cannot write output files there"
+            + (f" (for {path})" if existing != path else "")
+            + (": it is a file" if not existing.is_dir() else ": no write permission")
+        )
     return path
 
 

@@ -6,11 +6,18 @@ y anterior, z superior/cranial). The anteroposterior axis is y, the cranio-cauda
 The file format is a compressed NumPy archive (``.npz``) whose arrays are the dataclass
 fields; ``metadata`` is stored as a JSON string. The schema is versioned
 (``SCHEMA_VERSION``) and described in ``docs/trajectory-schema.md``.
+
+Every reader of the project opens files through `reading_file` (and `.npz` archives through
+`read_npz`): a missing file is a ``FileNotFoundError``, anything else a library raises on a bad
+file (``EOFError``, ``BadZipFile``, ``StopIteration``, parser errors...) one ``ValueError`` that
+names the file and says what is wrong with it.
 """
 
 from __future__ import annotations
 
 import json
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field, fields
 from enum import IntEnum
 from pathlib import Path
@@ -22,6 +29,27 @@ from numpy.typing import NDArray
 from fem.contract.atomic import atomic_path
 
 SCHEMA_VERSION = 1
+
+#: Leading bytes of a NumPy ``.npz`` archive (a ZIP file; the second: an empty one).
+NPZ_MAGIC = (b"PK\x03\x04", b"PK\x05\x06")
+
+#: Leading bytes of the kinds of file a user may hand a reader by mistake, for messages.
+FILE_SIGNATURES = {
+    b"PK\x03\x04": "a ZIP archive (NumPy .npz)",
+    b"\x93NUMPY": "a NumPy .npy array",
+    b"\x1f\x8b": "gzip-compressed data",
+    b"NRRD": "an NRRD image",
+    b"\x5c\x01\x00\x00": "a NIfTI-1 image",
+    b"\x89PNG": "a PNG image",
+    b"\xff\xd8\xff": "a JPEG image",
+    b"%PDF": "a PDF document",
+    b"\x80": "a Python pickle",
+    b"{": "JSON text",
+    b"<": "XML text",
+}
+
+#: Fields of a trajectory file holding indices, labels or bits: integer arrays.
+_INTEGER_FIELDS = ("cells", "tissue", "node_tissue_code", "node_flags", "skin")
 
 
 class Tissue(IntEnum):
@@ -182,26 +210,132 @@ class Trajectory:
 
     @classmethod
     def load(cls, path: str | Path) -> Trajectory:
-        """Read an archive written by `save`; never unpickles."""
-        path = Path(path)
-        if not path.is_file():
-            raise FileNotFoundError(f"{path}: no such trajectory file")
-        with np.load(path, allow_pickle=False) as data:
-            version = int(data["schema_version"]) if "schema_version" in data else None
-            if version != SCHEMA_VERSION:
-                raise ValueError(
-                    f"{path}: field 'schema_version' is {version}, this code reads {SCHEMA_VERSION}"
-                )
-            kwargs: dict[str, Any] = {}
-            for f in fields(cls):
-                if f.name == "metadata":
-                    continue
-                if f.name not in data:
-                    raise ValueError(f"{path}: field '{f.name}' is missing")
-                kwargs[f.name] = data[f.name]
-            kwargs["metadata"] = json.loads(str(data["metadata"]))
+        """Read an archive written by `save`; never unpickles.
+
+        Raises
+        ------
+        FileNotFoundError
+            The file does not exist.
+        ValueError
+            The file is empty, truncated, corrupt, not an ``.npz`` archive, or an archive that
+            is not a trajectory of this schema (a field missing or of the wrong kind).
+        """
+        data = read_npz(path, "a trajectory (.npz)")
+        if "schema_version" not in data:
+            raise ValueError(
+                f"{path}: not a trajectory file: field 'schema_version' is missing "
+                f"(fields: {', '.join(sorted(data)) or 'none'})"
+            )
+        version = data["schema_version"]
+        if version.shape != () or version.dtype.kind not in "iu" or version != SCHEMA_VERSION:
+            raise ValueError(
+                f"{path}: field 'schema_version' is {version}, this code reads {SCHEMA_VERSION}"
+            )
+        missing = [f.name for f in fields(cls) if f.name not in data]
+        if missing:
+            raise ValueError(f"{path}: field(s) {', '.join(map(repr, missing))} missing")
         traj = cls.__new__(cls)
-        for k, v in kwargs.items():
-            setattr(traj, k, v)
+        for f in fields(cls):
+            if f.name != "metadata":
+                setattr(traj, f.name, _numeric_field(data[f.name], f.name, path))
+        traj.metadata = _metadata_field(data["metadata"], path)
         traj.validate(str(path))
         return traj
+
+
+def _numeric_field(array: NDArray, name: str, path: Path) -> NDArray:
+    """``array`` if it has the kind of numbers field ``name`` holds, else a ``ValueError``."""
+    kinds = "iu" if name in _INTEGER_FIELDS else "iuf"
+    if array.dtype.kind not in kinds:
+        expected = "integers" if kinds == "iu" else "numbers"
+        raise ValueError(f"{path}: field '{name}' holds {array.dtype} values, not {expected}")
+    return array
+
+
+def _metadata_field(array: NDArray, path: Path) -> dict[str, Any]:
+    """The JSON object stored in the ``metadata`` field."""
+    try:
+        metadata = json.loads(str(array)) if array.dtype.kind == "U" else None
+    except json.JSONDecodeError:
+        metadata = None
+    if not isinstance(metadata, dict):
+        raise ValueError(f"{path}: field 'metadata' is not a JSON object")
+    return metadata
+
+
+def _first_line(exc: BaseException) -> str:
+    """``Type: first line of the message`` (libraries append stack traces), at most 200 chars."""
+    lines = str(exc).strip().splitlines()
+    text = f"{type(exc).__name__}: {lines[0]}" if lines else type(exc).__name__
+    return text if len(text) <= 200 else text[:197] + "..."
+
+
+def _file_problem(head: bytes, what: str) -> str:
+    """What a file that does not start like ``what`` is instead."""
+    kind = next((k for sig, k in FILE_SIGNATURES.items() if head.startswith(sig)), None)
+    return f"it is {kind}, not {what}" if kind else f"it is not {what} (unknown leading bytes)"
+
+
+@contextmanager
+def reading_file(
+    path: str | Path, what: str, magic: bytes | tuple[bytes, ...] = ()
+) -> Iterator[Path]:
+    """Open ``path`` for a library to read as ``what``: the one error policy of every reader.
+
+    On entry the file must exist (else ``FileNotFoundError``), be a non-empty file, and, when
+    ``magic`` is given, start with it (else ``ValueError`` saying what the file is instead).
+    Any ``Exception`` the block raises becomes one ``ValueError`` naming the file, saying it
+    is truncated or corrupt (or, without ``magic``, possibly another kind of file), and
+    quoting the library's first line. Keep only library calls in the block, so that the
+    readers' own messages pass unchanged.
+
+    Parameters
+    ----------
+    path : str or Path
+        The file.
+    what : str
+        The kind of file expected, for messages, e.g. ``"a NIfTI image"``.
+    magic : bytes or tuple of bytes
+        Leading bytes every valid file starts with (one of them); empty: not checked.
+
+    Yields
+    ------
+    Path
+        ``path``.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no such file")
+    if not path.is_file():
+        raise ValueError(f"{path}: a folder, not a file ({what})")
+    with open(path, "rb") as fh:
+        head = fh.read(16)
+    if not head:
+        raise ValueError(f"{path}: the file is empty (0 bytes), not {what}")
+    if magic and not head.startswith(magic):
+        raise ValueError(f"{path}: {_file_problem(head, what)}")
+    try:
+        yield path
+    except Exception as exc:
+        if "allow_pickle" in str(exc):  # NumPy's message (not chained) suggests unsafe loading
+            raise ValueError(
+                f"{path}: cannot be read as {what}: it holds pickled Python objects, which are "
+                "never loaded"
+            ) from None
+        problem = "truncated or corrupt" if magic else f"truncated, corrupt or not {what}"
+        raise ValueError(
+            f"{path}: cannot be read as {what}: the file is {problem} ({_first_line(exc)})"
+        ) from exc
+
+
+def read_npz(path: str | Path, what: str = "a NumPy .npz archive") -> dict[str, NDArray]:
+    """Every array of an ``.npz`` archive, read eagerly (so that a truncated member fails
+    here) and never unpickled; errors as `reading_file`.
+
+    Returns
+    -------
+    dict
+        Field name -> array.
+    """
+    with reading_file(path, what, NPZ_MAGIC) as p, np.load(p, allow_pickle=False) as z:
+        return {name: z[name] for name in z.files}
