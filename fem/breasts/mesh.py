@@ -164,6 +164,25 @@ def compact_mesh(points: NDArray, cells: NDArray) -> tuple[NDArray, NDArray]:
     return points[used], inv.reshape(cells.shape).astype(np.int64)
 
 
+def crop_with_margin(volume: LabelVolume, margin: int = 2) -> LabelVolume:
+    """The labelled voxels of ``volume`` with ``margin`` voxels of background around them.
+
+    Where the tissue reaches the edge of the image (a segmentation cropped at the chest
+    wall), the margin is added as background, so the tissue ends at the image's edge instead
+    of continuing beyond it. The affine keeps voxel -> world positions of the original.
+    """
+    idx = np.argwhere(volume.labels != Tissue.BACKGROUND)
+    lo, hi = idx.min(0) - margin, idx.max(0) + margin + 1
+    shape = np.array(volume.labels.shape)
+    inside = tuple(
+        slice(a, b) for a, b in zip(np.maximum(lo, 0), np.minimum(hi, shape), strict=True)
+    )
+    outside = [(int(max(0, -a)), int(max(0, b - n))) for a, b, n in zip(lo, hi, shape, strict=True)]
+    affine = volume.affine.copy()
+    affine[:3, 3] += affine[:3, :3] @ lo
+    return LabelVolume(np.pad(volume.labels[inside], outside), affine, volume.source)
+
+
 class _Field:
     """Trilinear interpolation of a voxel field at world points (mm)."""
 
@@ -406,19 +425,12 @@ class Mesher:
         labels = volume.labels
         if not np.isin(labels, (Tissue.FAT, Tissue.GLAND)).any():
             raise ValueError(f"{volume.source}: no breast labels (fat or gland) in the volume")
-        domain = labels != Tissue.BACKGROUND
-        # Crop to the domain plus a margin, keeping the affine consistent.
-        idx = np.argwhere(domain)
-        pad = 2
-        lo_i = np.maximum(idx.min(0) - pad, 0)
-        hi_i = np.minimum(idx.max(0) + pad + 1, labels.shape)
-        crop = tuple(slice(a, b) for a, b in zip(lo_i, hi_i, strict=True))
-        affine = volume.affine.copy()
-        affine[:3, 3] += affine[:3, :3] @ lo_i
-        cropped = LabelVolume(labels[crop], affine, volume.source)
+        cropped = crop_with_margin(volume, margin=2)
+        affine = cropped.affine
+        domain = cropped.labels != Tissue.BACKGROUND
         domain_volume = float(domain.sum()) * volume.voxel_volume
         h = (12.0 * domain_volume / self.target_elements) ** (1 / 3)
-        phi = _Field(*coarse_signed_distance(domain[crop], affine, h / self.distance_resolution))
+        phi = _Field(*coarse_signed_distance(domain, affine, h / self.distance_resolution))
         corners = (
             np.array(np.meshgrid(*[[0, s - 1] for s in cropped.labels.shape], indexing="ij"))
             .reshape(3, -1)
