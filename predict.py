@@ -16,6 +16,7 @@ or refuse the output with ``checks.on_violation=refuse``.
 
 from __future__ import annotations
 
+import math
 import time
 from pathlib import Path
 
@@ -26,6 +27,7 @@ from omegaconf import DictConfig, ListConfig
 from fem.breasts.figures import shapes_sections_png
 from fem.breasts.io import file_kind, file_suffix
 from fem.contract.atomic import writable_folder, write_json
+from fem.contract.trajectory import Trajectory
 from mammo_net.predictor import (
     load_surrogate,
     map_landmarks,
@@ -34,6 +36,48 @@ from mammo_net.predictor import (
     write_rows,
     write_shapes,
 )
+
+LATERALITIES = ("L", "R")
+
+
+def thicknesses(setting: object) -> list[float]:
+    """The ``thickness`` setting (a number or a list of numbers) as compressed thicknesses, mm.
+
+    Raises
+    ------
+    ValueError
+        Not a number nor a non-empty list of numbers, or a thickness that is not finite and
+        positive; the message names the setting.
+    """
+    values = list(setting) if isinstance(setting, ListConfig) else [setting]
+    try:
+        out = [float(t) for t in values]
+    except (TypeError, ValueError):
+        out = []
+    if not out or not all(math.isfinite(t) and t > 0 for t in out):
+        raise ValueError(
+            f"thickness must be a compressed thickness in mm (> 0) or a non-empty list of them, "
+            f"got {setting!r}"
+        )
+    return out
+
+
+def set_laterality(traj: Trajectory, setting: str | None) -> None:
+    """Record the ``laterality`` setting in ``traj``; without one, the file must record it.
+
+    Raises
+    ------
+    ValueError
+        No laterality in the setting nor in the file; the message names the file and the
+        setting.
+    """
+    if setting is not None:
+        traj.metadata["laterality"] = setting
+    elif traj.metadata.get("laterality") not in LATERALITIES:
+        raise ValueError(
+            f"{traj.source}: metadata field 'laterality' must be 'L' or 'R', got "
+            f"{traj.metadata.get('laterality')!r}: set laterality=L or laterality=R"
+        )
 
 
 def predict(cfg: DictConfig) -> Path:
@@ -44,19 +88,20 @@ def predict(cfg: DictConfig) -> Path:
     out = Path(cfg.out_dir)
     writable_folder(out)
     checks = instantiate(cfg.checks)
+    thickness = thicknesses(cfg.thickness)
+    if cfg.laterality not in (None, *LATERALITIES):
+        raise ValueError(f"laterality must be L, R or null (the file's), got {cfg.laterality!r}")
     source = Path(to_absolute_path(cfg.input))
     traj = instantiate(cfg.reader)(source)
-    if cfg.laterality is not None:
-        traj.metadata["laterality"] = str(cfg.laterality)
+    set_laterality(traj, cfg.laterality)
     unloaded, compression = (
         load_surrogate(to_absolute_path(path), step, precision=cfg.precision)
         for path, step in ((cfg.unloaded_model, "unloaded"), (cfg.compression_model, "compression"))
     )
-    thickness = list(cfg.thickness) if isinstance(cfg.thickness, ListConfig) else [cfg.thickness]
     landmarks = Path(to_absolute_path(cfg.landmarks)) if cfg.landmarks else None
     names, points = read_landmarks(landmarks) if landmarks else ([], None)
     start = time.perf_counter()
-    shapes = predict_breast(traj, unloaded, compression, [float(t) for t in thickness])
+    shapes = predict_breast(traj, unloaded, compression, thickness)
     seconds = time.perf_counter() - start
     record = checks(traj, shapes)
     rows = landmarks and map_landmarks(

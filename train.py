@@ -20,7 +20,7 @@ from hydra.utils import instantiate, to_absolute_path
 from omegaconf import DictConfig
 
 from fem.cohort import run_cohort
-from fem.contract.atomic import atomic_path
+from fem.contract.atomic import atomic_path, writable_folder
 from mammo_net.callbacks import TreeBaseline
 from mammo_net.inference import network_predictor, save_predictions
 from mammo_net.metrics import comparison
@@ -28,13 +28,12 @@ from mammo_net.module import SurrogateModule  # importing it stores the model's 
 from mammo_net.report import write_report
 
 
-def ensure_cohort(cfg: DictConfig) -> str:
-    """The trajectory folder. When it is the configured cohort's, the cohort is built, or a
-    partial build finished (resumable: finished breasts are skipped), before training."""
+def ensure_cohort(cfg: DictConfig) -> None:
+    """Build the configured cohort, or finish a partial build (resumable: finished breasts are
+    skipped), when the trajectory folder ``data.data_dir`` is the cohort's."""
     data_dir = Path(to_absolute_path(cfg.data.data_dir))
     if data_dir == Path(to_absolute_path(cfg.cohort.out_dir)) / "trajectories":
         run_cohort(cfg.cohort)
-    return str(data_dir)
 
 
 def logged(trainer: L.Trainer, baselines: list[TreeBaseline]) -> dict[str, float]:
@@ -46,11 +45,16 @@ def logged(trainer: L.Trainer, baselines: list[TreeBaseline]) -> dict[str, float
 
 
 def train(cfg: DictConfig) -> float:
-    """Fit (and test) on a composed config; returns the validation metric ``optimized_metric``."""
+    """Fit (and test) on a composed config; returns the validation metric ``optimized_metric``.
+
+    The run folder, the data and the model settings are checked before the cohort is built,
+    the features cached or anything written."""
+    writable_folder(cfg.run_dir)
     L.seed_everything(cfg.seed, workers=True)
+    dm = instantiate(cfg.data, data_dir=to_absolute_path(cfg.data.data_dir))
     model: SurrogateModule = instantiate(cfg.model)
-    model.check_data_step(cfg.data.step)  # before the cohort is built and its features cached
-    dm = instantiate(cfg.data, data_dir=ensure_cohort(cfg))
+    model.check_data_step(dm.hparams.step)
+    ensure_cohort(cfg)
     dm.prepare_data()
     dm.setup()
     model.set_feature_normalization(*dm.feature_statistics(), dm.schema())

@@ -161,15 +161,20 @@ class TrajectoryDataModule(L.LightningDataModule):
     ) -> None:
         super().__init__()
         if step not in STEPS:
-            raise ValueError(f"step must be one of {sorted(STEPS)}, got {step!r}")
+            raise ValueError(f"data.step must be one of {sorted(STEPS)}, got {step!r}")
         split = split or ("one_fold" if fold is None else "k_fold")
         if split not in ("one_fold", "k_fold"):
-            raise ValueError(f"split must be 'one_fold' or 'k_fold', got {split!r}")
+            raise ValueError(f"data.split must be 'one_fold' or 'k_fold', got {split!r}")
+        if split == "k_fold" and n_folds < 2:
+            raise ValueError(f"data.n_folds must be at least 2 for k_fold, got {n_folds!r}")
         if split == "k_fold" and not 0 <= (fold or 0) < n_folds:
-            raise ValueError(f"fold must be in 0..{n_folds - 1} for k_fold, got {fold!r}")
+            raise ValueError(
+                f"data.fold must be in 0..{n_folds - 1} for k_fold (data.n_folds={n_folds}), "
+                f"got {fold!r}"
+            )
         if split == "one_fold" and fold is not None:
             raise ValueError(
-                f"fold={fold} selects a k-fold validation fold; the one-fold split has none"
+                f"data.fold={fold} selects a k-fold validation fold; the one-fold split has none"
             )
         self.save_hyperparameters()
         self.data_dir = Path(data_dir)
@@ -190,8 +195,8 @@ class TrajectoryDataModule(L.LightningDataModule):
         FileNotFoundError
             The folder has no ``.hydra/config.yaml``.
         ValueError
-            The config is unreadable or a setting has the wrong type; the message names the
-            file and the field.
+            The config is unreadable or a setting has the wrong type or value; the message
+            names the file and the field.
         """
         config = Path(run) / ".hydra" / "config.yaml"
         if not config.is_file():
@@ -209,7 +214,10 @@ class TrajectoryDataModule(L.LightningDataModule):
                 )
         if data_dir is not None:
             values["data_dir"] = str(data_dir)
-        return cls(**values)
+        try:
+            return cls(**values)
+        except ValueError as exc:  # a value the constructor refuses, e.g. data.fold
+            raise ValueError(f"{config}: {exc}") from exc
 
     def sources(self) -> list[Path]:
         files = sorted(self.data_dir.glob("P*_[LR].npz"))
@@ -218,8 +226,9 @@ class TrajectoryDataModule(L.LightningDataModule):
         return files
 
     def prepare_data(self) -> None:
+        """Cache the features of every breast not cached yet; the cache folder is created by
+        the first breast written, so a folder without (readable) trajectories gets none."""
         out = self.cache / self.hparams.step
-        out.mkdir(parents=True, exist_ok=True)
         for source in self.sources():
             stem = out / source.stem
             if not stem.with_suffix(".targets.npy").exists():  # written last: marks it done

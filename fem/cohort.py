@@ -36,7 +36,7 @@ from fem.breasts.io import write_mesh
 from fem.breasts.mesh import Mesher
 from fem.breasts.phantom import PhantomGenerator
 from fem.breasts.pool import worker_pool
-from fem.contract.atomic import atomic_path
+from fem.contract.atomic import atomic_path, writable_folder
 from fem.engine.simulation import Simulation
 
 LATERALITIES = ("L", "R")
@@ -273,11 +273,22 @@ def check_settings(out_dir: Path, cfg: DictConfig) -> None:
 def run_cohort(cfg: DictConfig) -> dict:
     """Generate every unfinished breast of the cohort in parallel, then write the report.
 
-    Every setting is checked before the first breast: the generator, mesher and simulation are
-    built from ``cfg`` and compared with the settings the folder's breasts were made with
-    (`check_settings`).
+    Every setting is checked before anything is written: ``n_patients`` and ``workers``, the
+    output folder, the generator, mesher and simulation built from ``cfg`` and compared with the
+    settings the folder's breasts were made with (`check_settings`).
+
+    Raises
+    ------
+    ValueError
+        A setting out of range, or other settings than those of the folder's breasts; the
+        message names the setting.
+    PermissionError
+        ``out_dir`` cannot be written.
     """
-    out_dir = Path(to_absolute_path(cfg.out_dir))
+    for key in ("n_patients", "workers"):
+        if not (isinstance(cfg[key], int) and cfg[key] >= 1):
+            raise ValueError(f"{key} must be an integer >= 1, got {cfg[key]!r}")
+    out_dir = writable_folder(to_absolute_path(cfg.out_dir))
     generator: PhantomGenerator = instantiate(cfg.generator)
     mesher: Mesher = instantiate(cfg.mesher)
     simulation: Simulation | None = instantiate(cfg.simulation) if cfg.simulate else None

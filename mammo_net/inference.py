@@ -22,6 +22,7 @@ from numpy.typing import NDArray
 
 from datamodules.trajectories import Breast
 from fem.contract.atomic import atomic_path
+from fem.contract.trajectory import read_npz, reading_file
 
 PRECISIONS = ("32-true", "bf16-mixed")
 
@@ -80,12 +81,36 @@ def save_predictions(
 
 
 def load_predictions(path: str | Path) -> dict[str, NDArray[np.float32]]:
-    """The ``{breast name: (N, T, 3) mm}`` arrays of `save_predictions` (no pickle)."""
-    with np.load(path, allow_pickle=False) as data:
-        return {k: data[k] for k in data.files}
+    """The ``{breast name: (N, T, 3) mm}`` arrays of `save_predictions` (no pickle).
+
+    Raises
+    ------
+    FileNotFoundError
+        The file does not exist.
+    ValueError
+        An empty, truncated or corrupt file, or not an ``.npz`` archive of arrays
+        (`fem.contract.trajectory.read_npz`); the message names the file.
+    """
+    return read_npz(path, "a predictions file (.npz)")
 
 
 def load_prediction_seconds(path: str | Path) -> dict[str, float]:
-    """``{breast name: prediction wall time, s}`` saved beside ``path``; empty if none was."""
+    """``{breast name: prediction wall time, s}`` saved beside ``path``; empty if none was.
+
+    Raises
+    ------
+    ValueError
+        The timing file is unreadable, or its ``seconds`` are not a mapping of breast names to
+        numbers; the message names the file.
+    """
     timing = Path(path).with_suffix(".json")
-    return json.loads(timing.read_text())["seconds"] if timing.exists() else {}
+    if not timing.exists():
+        return {}
+    with reading_file(timing, "a prediction timing file (.json)", b"{") as p:
+        data = json.loads(p.read_text())
+    seconds = data.get("seconds") if isinstance(data, dict) else None
+    if not isinstance(seconds, dict) or not all(
+        isinstance(s, int | float) for s in seconds.values()
+    ):
+        raise ValueError(f"{timing}: field 'seconds' must map breast names to seconds")
+    return {name: float(s) for name, s in seconds.items()}

@@ -29,10 +29,14 @@ from numpy.typing import NDArray
 from torch.nn import functional as F
 
 from datamodules.features import STEP_FEATURES, FeatureSchema
+from fem.contract.trajectory import reading_file
 from mammo_net.metrics import BreastErrors
 from mammo_net.models import PAPER_ACTIVATIONS, AttBLSTM
 
 STAGES = ("train", "val", "test")
+
+#: The leading bytes of every checkpoint: ``torch.save`` writes a ZIP archive.
+CHECKPOINT_MAGIC = b"PK\x03\x04"
 
 
 class SurrogateModule(L.LightningModule):
@@ -78,9 +82,11 @@ class SurrogateModule(L.LightningModule):
     ) -> None:
         super().__init__()
         if step not in STEP_FEATURES:
-            raise ValueError(f"step must be one of {sorted(STEP_FEATURES)}, got {step!r}")
+            raise ValueError(f"model.step must be one of {sorted(STEP_FEATURES)}, got {step!r}")
         if lr_schedule not in ("constant", "cosine"):
-            raise ValueError(f"lr_schedule must be 'constant' or 'cosine', not {lr_schedule!r}")
+            raise ValueError(
+                f"model.lr_schedule must be 'constant' or 'cosine', not {lr_schedule!r}"
+            )
         if activations is None:
             activations = PAPER_ACTIVATIONS[step]
         # saved resolved and as plain types: a weights-only checkpoint keeps its network
@@ -139,11 +145,22 @@ class SurrogateModule(L.LightningModule):
 
         Raises
         ------
+        FileNotFoundError
+            The file does not exist.
         ValueError
-            Such an old checkpoint without a feature schema, or whose ``n_features`` is not
-            its step's number of features.
+            An empty, truncated or corrupt file, or one that is not a checkpoint of this
+            module (`fem.contract.trajectory.reading_file`); such an old checkpoint without a
+            feature schema, or whose ``n_features`` is not its step's number of features.
         """
-        checkpoint = torch.load(path, map_location="cpu", weights_only=True)
+        with reading_file(path, "a Lightning checkpoint (.ckpt)", CHECKPOINT_MAGIC) as p:
+            checkpoint = torch.load(p, map_location="cpu", weights_only=True)
+        if not isinstance(checkpoint, dict) or not {"hyper_parameters", "state_dict"} <= set(
+            checkpoint
+        ):
+            raise ValueError(
+                f"{path}: not a checkpoint of a trained network: fields 'hyper_parameters' and "
+                "'state_dict' expected"
+            )
         hparams = dict(checkpoint["hyper_parameters"])
         if "n_features" in hparams:
             n_features = hparams.pop("n_features")

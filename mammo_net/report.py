@@ -27,7 +27,7 @@ from numpy.typing import NDArray
 from omegaconf import DictConfig
 
 from fem import CONFIG_DIR
-from fem.contract.atomic import atomic_path
+from fem.contract.atomic import atomic_path, writable_folder
 from mammo_net import evaluation as ev
 from mammo_net import report_figures as figures
 from mammo_net.metrics import summarize, summarize_breasts
@@ -319,7 +319,11 @@ def write_report(
     data_dir: str | Path | None = None,
 ) -> Path:
     """Compute, tabulate and draw everything for the run folders ``runs`` into ``out_dir``,
-    with the settings ``analysis`` (``conf/analysis``); returns ``out_dir``."""
+    with the settings ``analysis`` (``conf/analysis``); returns ``out_dir``.
+
+    Every run folder, predictions file and trajectory is read, and ``out_dir`` checked, before
+    the first file is written (`mammo_net.report_data.collect`)."""
+    writable_folder(out_dir)
     evaluations = collect(runs, data_dir)
     if analysis.get("common_breasts"):
         for e in evaluations:

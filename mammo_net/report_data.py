@@ -18,7 +18,7 @@ from fem.contract.trajectory import TISSUE_BIT, NodeFlag, Tissue, Trajectory
 from mammo_net import evaluation as ev
 from mammo_net.inference import load_prediction_seconds, load_predictions
 from mammo_net.metrics import node_rmse
-from mammo_net.predictor import predict_run
+from mammo_net.predictor import RUN_MODELS, predict_run
 
 #: Pure-tissue node codes (interface nodes, whose code has several bits, are left out).
 TISSUE_CODES = {t.name.lower(): TISSUE_BIT[t] for t in (Tissue.FAT, Tissue.GLAND, Tissue.MUSCLE)}
@@ -103,9 +103,10 @@ def collect(runs: Iterable[str | Path], data_dir: str | Path | None = None) -> l
     data_dir
         The trajectory folder; by default each run's own ``data.data_dir``.
     """
-    folders = [Path(p) for pattern in runs for p in sorted(glob.glob(str(pattern)))]
+    patterns = [str(pattern) for pattern in runs]
+    folders = [Path(p) for pattern in patterns for p in sorted(glob.glob(pattern))]
     if not folders:
-        raise FileNotFoundError(f"no run folder matches {list(runs)}")
+        raise FileNotFoundError(f"runs: no run folder matches {patterns}")
     evaluations: dict[tuple[str, str], Evaluation] = {}
     for run in folders:
         split, step, own_data = run_settings(run)
@@ -136,7 +137,10 @@ def collect(runs: Iterable[str | Path], data_dir: str | Path | None = None) -> l
                 if name in seconds:
                     result.seconds[name] = seconds[name]
     if not evaluations:
-        raise FileNotFoundError(f"no predictions/*.npz in {[str(f) for f in folders]}")
+        raise FileNotFoundError(
+            f"no predictions/*.npz, nor model files to predict them with "
+            f"({', '.join(RUN_MODELS.values())}), in {[str(f) for f in folders]}"
+        )
     return sorted(evaluations.values(), key=lambda e: (e.split, e.step))
 
 

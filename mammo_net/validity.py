@@ -131,6 +131,9 @@ class PhysicalChecks:
             raise ValueError(
                 f"checks.on_violation must be 'warn' or 'refuse', got {self.on_violation!r}"
             )
+        for key in ("max_volume_change", "plate_tolerance_mm"):
+            if not getattr(self, key) >= 0:
+                raise ValueError(f"checks.{key} must be >= 0, got {getattr(self, key)!r}")
 
     def violations(self, checks: dict[str, ShapeCheck]) -> list[str]:
         """One sentence per failed check."""

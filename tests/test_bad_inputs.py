@@ -4,6 +4,7 @@ The corpus grows per command; docs/reliability.md tabulates it."""
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 
 import meshio
@@ -14,6 +15,10 @@ import pytest
 import xgboost as xgb
 from hydra import compose, initialize_config_dir
 from hydra.errors import InstantiationException
+from omegaconf import OmegaConf
+from test_cohort import _cfg as _cohort_cfg
+from test_predictor import _predict_cfg, models, scheduled_trajectory  # noqa: F401 (fixture)
+from test_report import cohort  # noqa: F401 (fixture)
 
 from datamodules.features import FeatureSchema
 from datamodules.trajectories import TrajectoryDataModule
@@ -435,3 +440,321 @@ def test_simulate_writes_nothing_on_a_bad_input(
         simulate_file(cfg)
     assert type(info.value) is ValueError
     assert sorted(p.name for p in tmp_path.iterdir()) == [path.name]
+
+
+# --- the commands: train.py, predict.py, fem.cohort, mammo_net.report ---------------------------
+#
+# Each bad setting or file gets ONE error of exactly the type named, whose message names the
+# setting (as ``key=value`` is written on the command line) or the file. It is raised before
+# anything is written: the folder the command ran in holds the same files afterwards (no
+# output folder, no feature cache, no cohort folder), and no cohort is built first.
+
+
+def _tree(folder: Path) -> list[tuple[str, bytes]]:
+    """Every path under ``folder``, relative, with a file's content (a folder's: empty)."""
+    return sorted(
+        (str(p.relative_to(folder)), b"" if p.is_dir() else p.read_bytes())
+        for p in folder.rglob("*")
+    )
+
+
+def _refused_leaving_nothing(
+    folder: Path, error: type[Exception], message: str, command, *args
+) -> None:
+    """``command(*args)`` raises exactly ``error`` matching ``message``, and ``folder`` is left
+    as it was."""
+    before = _tree(folder)
+    with pytest.raises(error, match=message) as info:
+        command(*args)
+    assert type(info.value) is error
+    assert _tree(folder) == before
+
+
+@pytest.fixture
+def no_cohort_built(monkeypatch):
+    """Fail the test where a cohort's breasts would be generated: the settings passed."""
+    from fem import cohort as cohort_command
+
+    monkeypatch.setattr(cohort_command, "worker_pool", lambda *_: pytest.fail("cohort built"))
+
+
+BAD_TRAIN = [
+    # data (data.data_dir defaults to the cohort's folder, which would be built first)
+    (["data.data_dir={tmp}/empty"], FileNotFoundError, r"empty: no simulated trajectories"),
+    (["data.data_dir={tmp}/absent"], FileNotFoundError, r"absent: no simulated trajectories"),
+    (["data.data_dir={tmp}/junk"], ValueError, r"junk/P0000_L\.npz: it is not a trajectory"),
+    (["data.step=bogus"], SETTING, r"data\.step must be one of \['compression', 'unloaded'\]"),
+    (["data.fold=12"], SETTING, r"data\.fold must be in 0\.\.9 for k_fold \(data\.n_folds=10\)"),
+    (["data.split=bogus"], SETTING, r"data\.split must be 'one_fold' or 'k_fold'"),
+    (["data.split=one_fold", "data.fold=2"], SETTING, r"data\.fold=2 selects a k-fold"),
+    (["data.fold=0", "data.n_folds=1"], SETTING, r"data\.n_folds must be at least 2"),
+    # model
+    (["model.step=bogus"], SETTING, r"model\.step must be one of"),
+    (["data.step=unloaded", "model.step=compression"], ValueError,
+     r"model\.step=compression .*data\.step=unloaded"),
+    (["model.lr_schedule=warm"], SETTING, r"model\.lr_schedule must be 'constant' or 'cosine'"),
+    # the cohort train.py builds, and the run folder
+    (["cohort.workers=0"], ValueError, r"workers must be an integer >= 1, got 0"),
+    (["cohort.mesher.target_elements=0"], SETTING, r"mesher\.target_elements must be at least 1"),
+    (["run_dir={tmp}/file"], PermissionError, r"file: cannot write output files there"),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("overrides", "error", "message"),
+    BAD_TRAIN,
+    ids=[" ".join(o).replace("{tmp}/", "") for o, *_ in BAD_TRAIN],
+)
+def test_train_refuses_before_building_or_training(
+    tmp_path, no_cohort_built, overrides, error, message
+):
+    import train
+
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "junk").mkdir()
+    (tmp_path / "junk" / "P0000_L.npz").write_bytes(b"junk")
+    (tmp_path / "file").write_text("")
+    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
+        cfg = compose(
+            "train",
+            overrides=[
+                f"run_dir={tmp_path / 'run'}",
+                f"cohort.out_dir={tmp_path / 'cohort'}",
+                *(o.format(tmp=tmp_path) for o in overrides),
+            ],
+        )
+    _refused_leaving_nothing(tmp_path, error, message, train.train, cfg)
+
+
+def _predict_inputs(tmp: Path, model_dir: Path) -> None:
+    """The files the bad requests name: a breast with and one without laterality, landmarks
+    outside it, a truncated checkpoint, a checkpoint of no network, a file for a folder."""
+    import torch
+
+    scheduled_trajectory(0.7).save(tmp / "case.npz")
+    no_side = scheduled_trajectory(0.7)
+    no_side.metadata.pop("laterality")
+    no_side.save(tmp / "nolat.npz")
+    (tmp / "far.csv").write_text("x,y,z\n100,100,100\n")
+    (tmp / "half.ckpt").write_bytes((model_dir / "unloaded.ckpt").read_bytes())
+    _truncated(tmp / "half.ckpt")
+    torch.save({"weights": [1.0]}, tmp / "other.ckpt")
+    (tmp / "file").write_text("")
+
+
+#: predict.py's requests on ``{tmp}/case.npz`` at 0.7 mm unless they say otherwise.
+BAD_PREDICT = [
+    # thickness
+    (["thickness=5"], ValueError,
+     r"case\.npz: compressed thickness 5\.0 mm is not smaller than the breast's cranio-caudal"),
+    (["thickness=0"], ValueError, r"thickness must be a compressed thickness in mm \(> 0\).*got 0"),
+    (["thickness=-1"], ValueError, r"thickness must be .*got -1"),
+    (["thickness=[]"], ValueError, r"thickness must be .* a non-empty list of them, got \[\]"),
+    (["thickness=thin"], ValueError, r"thickness must be .*got 'thin'"),
+    (["thickness=[50,nan]"], ValueError, r"thickness must be .*got \[50, nan\]"),
+    # landmarks
+    (["landmarks={tmp}/far.csv"], ValueError,
+     r"far\.csv: landmark '1' at \[100\.0, 100\.0, 100\.0\] mm lies outside the breast mesh"),
+    (["landmarks={tmp}/absent.csv"], FileNotFoundError, r"absent\.csv: no such file"),
+    # model files
+    (["unloaded_model={models}/compression.json"], ValueError,
+     r"compression\.json: the model predicts the compression step, not the unloaded step"),
+    (["unloaded_model={tmp}/absent.ckpt"], FileNotFoundError, r"absent\.ckpt: no such file"),
+    (["compression_model={tmp}/absent.json"], FileNotFoundError, r"absent\.json: no such file"),
+    (["compression_model={tmp}/model.pkl"], ValueError, r"model\.pkl: a model file ends in one of"),
+    (["unloaded_model={tmp}/half.ckpt"], ValueError,
+     r"half\.ckpt: cannot be read as a Lightning checkpoint \(\.ckpt\): the file is truncated"),
+    (["unloaded_model={tmp}/other.ckpt"], ValueError,
+     r"other\.ckpt: not a checkpoint of a trained network"),
+    (["unloaded_model={tmp}/case.npz"], ValueError, r"case\.npz: not an ERT model file"),
+    (["precision=fp8"], ValueError, r"precision must be one of \('32-true', 'bf16-mixed'\)"),
+    # laterality
+    (["laterality=X"], ValueError, r"laterality must be L, R or null \(the file's\), got 'X'"),
+    (["input={tmp}/nolat.npz"], ValueError,
+     r"nolat\.npz: metadata field 'laterality' must be 'L' or 'R', got None: set laterality=L"),
+    # the input, the checks, the output folder
+    (["input={tmp}/absent.vtu"], FileNotFoundError, r"absent\.vtu: no such file"),
+    (["checks.on_violation=bogus"], SETTING, r"checks\.on_violation must be 'warn' or 'refuse'"),
+    (["checks.max_volume_change=-1"], SETTING, r"checks\.max_volume_change must be >= 0"),
+    (["out_dir={tmp}/file/case"], PermissionError, r"file: cannot write output files there"),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("overrides", "error", "message"),
+    BAD_PREDICT,
+    ids=[" ".join(o).replace("{tmp}/", "").replace("{models}/", "") for o, *_ in BAD_PREDICT],
+)
+def test_predict_refuses_before_writing(models, tmp_path, overrides, error, message):  # noqa: F811
+    import predict
+
+    _predict_inputs(tmp_path, models)
+    cfg = _predict_cfg(
+        models,
+        tmp_path,
+        f"input={tmp_path / 'case.npz'}",
+        "thickness=0.7",
+        *(o.format(tmp=tmp_path, models=models) for o in overrides),
+    )
+    _refused_leaving_nothing(tmp_path, error, message, predict.predict, cfg)
+
+
+BAD_COHORT = [
+    (["workers=0"], ValueError, r"workers must be an integer >= 1, got 0"),
+    (["workers=-2"], ValueError, r"workers must be an integer >= 1, got -2"),
+    (["n_patients=0"], ValueError, r"n_patients must be an integer >= 1, got 0"),
+    (["n_patients=-3"], ValueError, r"n_patients must be an integer >= 1, got -3"),
+    (["simulate=true", "simulation.friction=-1"], SETTING, r"simulation\.friction must be >= 0"),
+    (["simulate=true", "simulation.materials.fat.young=0"], SETTING,
+     r"simulation\.materials\.fat: young must be > 0 Pa"),
+    (["simulate=true", "simulation.compression_ratio=1.5"], SETTING,
+     r"simulation\.compression_ratio must lie in \(0, 1\)"),
+    (["mesher.target_elements=0"], SETTING, r"mesher\.target_elements must be at least 1, got 0"),
+    (["mesher.min_quality=1.5"], SETTING, r"mesher\.min_quality must lie in \[0, 1\)"),
+    (["mesher.max_attempts=0"], SETTING, r"mesher\.max_attempts must be at least 1"),
+    (["generator.voxel_size=0"], SETTING, r"generator\.voxel_size must be > 0 mm"),
+    (["out_dir={tmp}/file/cohort"], PermissionError, r"file: cannot write output files there"),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("overrides", "error", "message"),
+    BAD_COHORT,
+    ids=[" ".join(o).replace("{tmp}/", "") for o, *_ in BAD_COHORT],
+)
+def test_cohort_refuses_before_creating_its_folder(
+    tmp_path, no_cohort_built, overrides, error, message
+):
+    from fem.cohort import run_cohort
+
+    (tmp_path / "file").write_text("")
+    cfg = _cohort_cfg(tmp_path / "cohort", *(o.format(tmp=tmp_path) for o in overrides))
+    _refused_leaving_nothing(tmp_path, error, message, run_cohort, cfg)
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("generator.seed=1", r"generator\.seed: 0 there, 1 now"),
+        ("mesher.target_elements=900", r"mesher\.target_elements: 2250 there, 900 now"),
+    ],
+)
+def test_cohort_refuses_to_resume_with_other_settings(tmp_path, no_cohort_built, override, message):
+    """A cohort folder's breasts were made with other settings: refused naming each key, its
+    record (``cohort_config.json``) unchanged."""
+    from fem.cohort import check_settings, run_cohort
+
+    folder = tmp_path / "cohort"
+    folder.mkdir()
+    check_settings(folder, _cohort_cfg(folder))  # the record of a first run
+    message = r"cohort_config\.json: the breasts in .* other settings: " + message
+    _refused_leaving_nothing(
+        tmp_path, ValueError, message, run_cohort, _cohort_cfg(folder, override)
+    )
+
+
+def _prediction_file(runs: Path) -> Path:
+    return runs / "fold0" / "predictions" / "model.npz"
+
+
+def _timing_file(runs: Path) -> Path:
+    return _prediction_file(runs).with_suffix(".json")
+
+
+def _write(path_of, data: bytes | str):
+    """A case that writes ``data`` to the file ``path_of(runs)``."""
+
+    def make(runs: Path) -> dict:
+        path = path_of(runs)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(data.encode() if isinstance(data, str) else data)
+        return {}
+
+    return make
+
+
+def _truncated_predictions(runs: Path) -> dict:
+    _truncated(_prediction_file(runs))
+    return {}
+
+
+def _predictions(**arrays):
+    """A case that replaces fold0's predictions with ``arrays``."""
+
+    def make(runs: Path) -> dict:
+        np.savez(_prediction_file(runs), **arrays)
+        return {}
+
+    return make
+
+
+def _lone_run(file: str, data: bytes | str):
+    """A case that reports on the run folder ``runs/bad`` alone, holding ``data`` in ``file``."""
+    write = _write(lambda runs: runs / "bad" / file, data)
+    return lambda runs: write(runs) | {"runs": [runs / "bad"]}
+
+
+def _settings(data: str):
+    """A case on a lone run folder whose ``.hydra/config.yaml`` holds ``data``."""
+    return _lone_run(".hydra/config.yaml", data)
+
+
+_RUN_DATA = "data:\n  data_dir: trajectories\n  "
+
+#: The report over the test_report cohort's run folders (``runs/*``) into ``report/``; each
+#: case changes a file, and returns the arguments it changes.
+BAD_REPORT = {
+    "no run folder matches": (
+        lambda runs: {"runs": [runs / "nothing*"]}, FileNotFoundError,
+        r"runs: no run folder matches \['.*nothing\*'\]"),
+    "truncated predictions": (
+        _truncated_predictions, ValueError,
+        r"fold0/predictions/model\.npz: cannot be read as a predictions file \(\.npz\): the "
+        r"file is truncated or corrupt"),
+    "junk predictions": (
+        _write(_prediction_file, b"junk"), ValueError,
+        r"fold0/predictions/model\.npz: it is not a predictions file"),
+    "pickled predictions": (
+        _predictions(P0000_L=np.array([{}], dtype=object)), ValueError,
+        r"fold0/predictions/model\.npz: .*pickled Python objects, which are never loaded"),
+    "predictions of another shape": (
+        _predictions(P0000_L=np.zeros((5, 2, 3))), ValueError,
+        r"fold0/predictions/model\.npz: field 'P0000_L' has shape \(5, 2, 3\), the FE "
+        r"trajectory \(5, 3, 3\)"),
+    "a breast without trajectory": (
+        _predictions(P0009_L=np.zeros((5, 3, 3))), FileNotFoundError,
+        r"trajectories/P0009_L\.npz: no such file"),
+    "junk timing file": (
+        _write(_timing_file, "{nope"), ValueError,
+        r"fold0/predictions/model\.json: cannot be read as a prediction timing file"),
+    "timing file of words": (
+        _write(_timing_file, '{"seconds": {"P0000_L": "fast"}}'), ValueError,
+        r"fold0/predictions/model\.json: field 'seconds' must map breast names to seconds"),
+    "no predictions nor models": (
+        _settings(_RUN_DATA + "step: compression\n"), FileNotFoundError,
+        r"no predictions/\*\.npz, nor model files to predict them with .* in \['.*bad'\]"),
+    "no run config": (
+        _lone_run("predictions/model.npz", b""), FileNotFoundError,
+        r"bad/\.hydra/config\.yaml: not found; is .*bad a train\.py run folder"),
+    "run config step": (
+        _settings(_RUN_DATA + "step: bogus\n"), ValueError,
+        r"bad/\.hydra/config\.yaml: data\.step must be one of"),
+    "run config fold": (
+        _settings(_RUN_DATA + "fold: 12\n"), ValueError,
+        r"bad/\.hydra/config\.yaml: data\.fold must be in 0\.\.9"),
+    "data_dir without the breasts": (
+        lambda runs: {"data_dir": runs}, FileNotFoundError, r"runs/P0000_L\.npz: no such file"),
+    "out_dir inside a file": (
+        lambda runs: {"out_dir": runs / "fold0" / ".hydra" / "config.yaml" / "report"},
+        PermissionError, r"config\.yaml: cannot write output files there .*: it is a file"),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("make", "error", "message"), list(BAD_REPORT.values()), ids=list(BAD_REPORT)
+)
+def test_report_refuses_before_writing(cohort, make, error, message):  # noqa: F811
+    analysis = OmegaConf.load(Path(CONF) / "analysis" / "default.yaml")
+    arguments = {"runs": [cohort / "*"], "out_dir": cohort.parent / "report", "analysis": analysis}
+    report = functools.partial(write_report, **arguments | make(cohort))
+    _refused_leaving_nothing(cohort.parent, error, message, report)

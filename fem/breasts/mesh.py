@@ -421,6 +421,20 @@ class Mesher:
     max_attempts: int = 12
     distance_resolution: float = 6.0
 
+    def __post_init__(self) -> None:
+        rules = {  # setting: (holds, what it must)
+            "target_elements": (self.target_elements >= 1, "be at least 1"),
+            "tolerance": (self.tolerance >= 0, "be >= 0"),
+            "snap_iterations": (self.snap_iterations >= 0, "be >= 0"),
+            "smooth_iterations": (self.smooth_iterations >= 0, "be >= 0"),
+            "min_quality": (0 <= self.min_quality < 1, "lie in [0, 1)"),
+            "max_attempts": (self.max_attempts >= 1, "be at least 1"),
+            "distance_resolution": (self.distance_resolution > 0, "be > 0"),
+        }
+        for key, (holds, rule) in rules.items():
+            if not holds:
+                raise ValueError(f"mesher.{key} must {rule}, got {getattr(self, key)!r}")
+
     def __call__(self, volume: LabelVolume, metadata: dict | None = None) -> Trajectory:
         labels = volume.labels
         if not np.isin(labels, (Tissue.FAT, Tissue.GLAND)).any():

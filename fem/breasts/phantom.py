@@ -189,6 +189,10 @@ class PhantomGenerator:
     seed: int = 0
     voxel_size: float = 1.0
 
+    def __post_init__(self) -> None:
+        if not self.voxel_size > 0:
+            raise ValueError(f"generator.voxel_size must be > 0 mm, got {self.voxel_size!r}")
+
     def _rng(self, *keys: int) -> np.random.Generator:
         return np.random.default_rng(np.random.SeedSequence([self.seed, *keys]))
 
