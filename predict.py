@@ -16,68 +16,27 @@ or refuse the output with ``checks.on_violation=refuse``.
 
 from __future__ import annotations
 
-import math
 import time
 from pathlib import Path
 
 import hydra
 from hydra.utils import instantiate, to_absolute_path
-from omegaconf import DictConfig, ListConfig
+from omegaconf import DictConfig
 
-from fem.breasts.figures import shapes_sections_png
 from fem.breasts.io import file_kind, file_suffix
 from fem.contract.atomic import writable_folder, write_json
-from fem.contract.trajectory import Trajectory
 from mammo_net.predictor import (
+    check_laterality,
     load_surrogate,
     map_landmarks,
     predict_breast,
     read_landmarks,
+    set_laterality,
+    thicknesses,
+    write_previews,
     write_rows,
     write_shapes,
 )
-
-LATERALITIES = ("L", "R")
-
-
-def thicknesses(setting: object) -> list[float]:
-    """The ``thickness`` setting (a number or a list of numbers) as compressed thicknesses, mm.
-
-    Raises
-    ------
-    ValueError
-        Not a number nor a non-empty list of numbers, or a thickness that is not finite and
-        positive; the message names the setting.
-    """
-    values = list(setting) if isinstance(setting, ListConfig) else [setting]
-    try:
-        out = [float(t) for t in values]
-    except (TypeError, ValueError):
-        out = []
-    if not out or not all(math.isfinite(t) and t > 0 for t in out):
-        raise ValueError(
-            f"thickness must be a compressed thickness in mm (> 0) or a non-empty list of them, "
-            f"got {setting!r}"
-        )
-    return out
-
-
-def set_laterality(traj: Trajectory, setting: str | None) -> None:
-    """Record the ``laterality`` setting in ``traj``; without one, the file must record it.
-
-    Raises
-    ------
-    ValueError
-        No laterality in the setting nor in the file; the message names the file and the
-        setting.
-    """
-    if setting is not None:
-        traj.metadata["laterality"] = setting
-    elif traj.metadata.get("laterality") not in LATERALITIES:
-        raise ValueError(
-            f"{traj.source}: metadata field 'laterality' must be 'L' or 'R', got "
-            f"{traj.metadata.get('laterality')!r}: set laterality=L or laterality=R"
-        )
 
 
 def predict(cfg: DictConfig) -> Path:
@@ -89,8 +48,7 @@ def predict(cfg: DictConfig) -> Path:
     writable_folder(out)
     checks = instantiate(cfg.checks)
     thickness = thicknesses(cfg.thickness)
-    if cfg.laterality not in (None, *LATERALITIES):
-        raise ValueError(f"laterality must be L, R or null (the file's), got {cfg.laterality!r}")
+    check_laterality(cfg.laterality)
     source = Path(to_absolute_path(cfg.input))
     traj = instantiate(cfg.reader)(source)
     set_laterality(traj, cfg.laterality)
@@ -111,18 +69,8 @@ def predict(cfg: DictConfig) -> Path:
     written = write_shapes(traj, shapes, out, input_format)
     written.append(write_json({"seconds": seconds, "checks": record}, out / "checks.json"))
     if cfg.figures:
-        for k, t in enumerate(shapes.thickness):
-            shapes_k = {
-                "imaged": traj.points,
-                f"unloaded ({unloaded.name})": shapes.unloaded[-1],
-                f"compressed to {t:g} mm ({compression.name})": shapes.compressed[k, -1],
-            }
-            title = f"{source.name}: predicted shapes, {t:g} mm"
-            written.append(
-                shapes_sections_png(
-                    traj.cells, traj.tissue, shapes_k, title, out / f"preview_{t:g}mm.png"
-                )
-            )
+        names = (unloaded.name, compression.name)
+        written += write_previews(traj, shapes, names, source.name, out)
     if rows:
         written.append(write_rows(rows, out / "landmarks.csv"))
     print(

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import csv
 import functools
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -26,6 +27,7 @@ from numpy.typing import NDArray
 
 from datamodules.features import FeatureSchema, compression_inputs, unloaded_inputs
 from datamodules.trajectories import TrajectoryDataModule
+from fem.breasts.figures import shapes_sections_png
 from fem.breasts.io import write_mesh
 from fem.contract.atomic import atomic_path
 from fem.contract.landmarks import SOURCE_TO_IMAGE_MM, carry, locate, project_cc
@@ -250,6 +252,80 @@ def write_shapes(
         written.append(
             write_time_series(
                 predicted_trajectory(traj, shapes, k), out / f"trajectory_{t:g}mm.xdmf"
+            )
+        )
+    return written
+
+
+LATERALITIES = ("L", "R")
+
+
+def thicknesses(setting: object) -> list[float]:
+    """The ``thickness`` setting (a number or a list of numbers) as compressed thicknesses, mm.
+
+    Raises
+    ------
+    ValueError
+        Not a number nor a non-empty list of numbers, or a thickness that is not finite and
+        positive; the message names the setting.
+    """
+    scalar = setting is None or isinstance(setting, str | int | float)
+    values = [setting] if scalar else list(setting)
+    try:
+        out = [float(t) for t in values]
+    except (TypeError, ValueError):
+        out = []
+    if not out or not all(math.isfinite(t) and t > 0 for t in out):
+        raise ValueError(
+            f"thickness must be a compressed thickness in mm (> 0) or a non-empty list of them, "
+            f"got {setting!r}"
+        )
+    return out
+
+
+def check_laterality(setting: str | None) -> None:
+    """Refuse a ``laterality`` setting other than L, R or None (the file's)."""
+    if setting not in (None, *LATERALITIES):
+        raise ValueError(f"laterality must be L, R or null (the file's), got {setting!r}")
+
+
+def set_laterality(traj: Trajectory, setting: str | None) -> None:
+    """Record the ``laterality`` setting in ``traj``; without one, the file must record it.
+
+    Raises
+    ------
+    ValueError
+        No laterality in the setting nor in the file; the message names the file and the
+        setting.
+    """
+    if setting is not None:
+        traj.metadata["laterality"] = setting
+    elif traj.metadata.get("laterality") not in LATERALITIES:
+        raise ValueError(
+            f"{traj.source}: metadata field 'laterality' must be 'L' or 'R', got "
+            f"{traj.metadata.get('laterality')!r}: set laterality=L or laterality=R"
+        )
+
+
+def write_previews(
+    traj: Trajectory, shapes: BreastShapes, models: tuple[str, str], title: str, out_dir: Path
+) -> list[Path]:
+    """``preview_<t>mm.png`` per thickness: the imaged, unloaded and compressed shapes in three
+    body planes, with the names of the (unloaded-state, compression) ``models``."""
+    written = []
+    for k, t in enumerate(shapes.thickness):
+        rows = {
+            "imaged": traj.points,
+            f"unloaded ({models[0]})": shapes.unloaded[-1],
+            f"compressed to {t:g} mm ({models[1]})": shapes.compressed[k, -1],
+        }
+        written.append(
+            shapes_sections_png(
+                traj.cells,
+                traj.tissue,
+                rows,
+                f"{title}: predicted shapes, {t:g} mm",
+                Path(out_dir) / f"preview_{t:g}mm.png",
             )
         )
     return written
