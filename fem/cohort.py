@@ -3,6 +3,7 @@
     python -m fem.cohort                         # embedded default (conf/cohort.yaml)
     python -m fem.cohort n_patients=258 out_dir=data/cohort/full workers=2
     python -m fem.cohort ... simulate=false      # meshes only
+    python -m fem.cohort ... executor=dask       # on Dask distributed (docs/distributed.md)
 
 Per breast ``P0007_L`` it writes ``P0007_L.vtu`` (ParaView, tissue fields), ``P0007_L.png``
 (sections) and, last, ``P0007_L.npz`` (the `Trajectory`); a breast whose ``.npz`` exists is
@@ -20,7 +21,7 @@ import csv
 import json
 import time
 from collections.abc import Callable
-from concurrent.futures import as_completed
+from concurrent.futures import Executor, as_completed
 from pathlib import Path
 
 import hydra
@@ -35,7 +36,7 @@ from fem.breasts.figures import breast_sections_png, cohort_summary_png
 from fem.breasts.io import write_mesh
 from fem.breasts.mesh import Mesher
 from fem.breasts.phantom import PhantomGenerator
-from fem.breasts.pool import worker_pool
+from fem.breasts.pool import check_executor, cohort_executor, one_blas_thread
 from fem.contract.atomic import atomic_path, writable_folder
 from fem.engine.simulation import Simulation
 
@@ -46,6 +47,7 @@ def breast_name(patient: int, laterality: str) -> str:
     return f"P{patient:04d}_{laterality}"
 
 
+@one_blas_thread
 def make_breast(
     generator: PhantomGenerator,
     mesher: Mesher,
@@ -270,47 +272,34 @@ def check_settings(out_dir: Path, cfg: DictConfig) -> None:
         tmp.write_text(json.dumps({**stored, **requested}, indent=2))
 
 
-def run_cohort(cfg: DictConfig) -> dict:
-    """Generate every unfinished breast of the cohort in parallel, then write the report.
+def mesh_cohort(
+    pool: Executor,
+    generator: PhantomGenerator,
+    mesher: Mesher,
+    out_dir: Path,
+    n_patients: int,
+    figures: bool,
+) -> list[dict]:
+    """Generate and mesh every unfinished breast of the cohort on ``pool``; returns the failures.
 
-    Every setting is checked before anything is written: ``n_patients`` and ``workers``, the
-    output folder, the generator, mesher and simulation built from ``cfg`` and compared with the
-    settings the folder's breasts were made with (`check_settings`).
-
-    Raises
-    ------
-    ValueError
-        A setting out of range, or other settings than those of the folder's breasts; the
-        message names the setting.
-    PermissionError
-        ``out_dir`` cannot be written.
+    A breast whose ``.npz`` exists in ``out_dir`` is finished and skipped; a failed breast is
+    reported (name and reason), never written.
     """
-    for key in ("n_patients", "workers"):
-        if not (isinstance(cfg[key], int) and cfg[key] >= 1):
-            raise ValueError(f"{key} must be an integer >= 1, got {cfg[key]!r}")
-    out_dir = writable_folder(to_absolute_path(cfg.out_dir))
-    generator: PhantomGenerator = instantiate(cfg.generator)
-    mesher: Mesher = instantiate(cfg.mesher)
-    simulation: Simulation | None = instantiate(cfg.simulation) if cfg.simulate else None
-    out_dir.mkdir(parents=True, exist_ok=True)
-    check_settings(out_dir, cfg)
     todo = [
         (p, lat)
-        for p in range(cfg.n_patients)
+        for p in range(n_patients)
         for lat in LATERALITIES
         if not (out_dir / f"{breast_name(p, lat)}.npz").exists()
     ]
-    done = 2 * cfg.n_patients - len(todo)
     failures: list[dict] = []
-    t0 = time.perf_counter()
-    with (
-        worker_pool(cfg.workers) as pool,
-        tqdm(
-            total=2 * cfg.n_patients, initial=done, unit="breast", desc=f"cohort -> {out_dir}"
-        ) as bar,
-    ):
+    with tqdm(
+        total=2 * n_patients,
+        initial=2 * n_patients - len(todo),
+        unit="breast",
+        desc=f"cohort -> {out_dir}",
+    ) as bar:
         futures = {
-            pool.submit(make_breast, generator, mesher, p, lat, out_dir, cfg.figures): (p, lat)
+            pool.submit(make_breast, generator, mesher, p, lat, out_dir, figures): (p, lat)
             for p, lat in todo
         }
         for fut in as_completed(futures):
@@ -323,20 +312,49 @@ def run_cohort(cfg: DictConfig) -> dict:
                 )
                 tqdm.write(f"FAILED {breast_name(p, lat)}: {exc}")
             bar.update()
-    report = write_report(out_dir, cfg.n_patients, failures, time.perf_counter() - t0)
-    print(json.dumps({k: v for k, v in report.items() if k != "failures"}, indent=2))
-    print(f"{len(failures)} failures; outputs in {out_dir}")
-    if simulation is not None:
-        names = [breast_name(p, lat) for p in range(cfg.n_patients) for lat in LATERALITIES]
-        report["simulation"] = simulate_cohort(
-            out_dir,
-            names,
-            simulation,
-            cfg.workers,
-            cfg.time_series,
-            cfg.retry_failed,
-        )
-        print((out_dir / "trajectories" / "simulation_summary.md").read_text())
+    return failures
+
+
+def run_cohort(cfg: DictConfig) -> dict:
+    """Generate every unfinished breast of the cohort in parallel, then write the report.
+
+    Every setting is checked before anything is written: ``n_patients`` and ``workers``, the
+    executor (``executor``, ``scheduler``: `fem.breasts.pool.check_executor`), the output
+    folder, the generator, mesher and simulation built from ``cfg`` and compared with the
+    settings the folder's breasts were made with (`check_settings`). Both stages run their
+    per-breast tasks on one executor (`fem.breasts.pool.cohort_executor`): the local process
+    pool or Dask distributed, with the same files.
+
+    Raises
+    ------
+    ValueError
+        A setting out of range, or other settings than those of the folder's breasts; the
+        message names the setting.
+    PermissionError
+        ``out_dir`` cannot be written.
+    """
+    for key in ("n_patients", "workers"):
+        if not (isinstance(cfg[key], int) and cfg[key] >= 1):
+            raise ValueError(f"{key} must be an integer >= 1, got {cfg[key]!r}")
+    check_executor(cfg.executor, cfg.scheduler)
+    out_dir = writable_folder(to_absolute_path(cfg.out_dir))
+    generator: PhantomGenerator = instantiate(cfg.generator)
+    mesher: Mesher = instantiate(cfg.mesher)
+    simulation: Simulation | None = instantiate(cfg.simulation) if cfg.simulate else None
+    out_dir.mkdir(parents=True, exist_ok=True)
+    check_settings(out_dir, cfg)
+    with cohort_executor(cfg.executor, cfg.workers, cfg.scheduler) as pool:
+        t0 = time.perf_counter()
+        failures = mesh_cohort(pool, generator, mesher, out_dir, cfg.n_patients, cfg.figures)
+        report = write_report(out_dir, cfg.n_patients, failures, time.perf_counter() - t0)
+        print(json.dumps({k: v for k, v in report.items() if k != "failures"}, indent=2))
+        print(f"{len(failures)} failures; outputs in {out_dir}")
+        if simulation is not None:
+            names = [breast_name(p, lat) for p in range(cfg.n_patients) for lat in LATERALITIES]
+            report["simulation"] = simulate_cohort(
+                pool, out_dir, names, simulation, cfg.time_series, cfg.retry_failed
+            )
+            print((out_dir / "trajectories" / "simulation_summary.md").read_text())
     return report
 
 

@@ -483,7 +483,7 @@ def no_cohort_built(monkeypatch):
     """Fail the test where a cohort's breasts would be generated: the settings passed."""
     from fem import cohort as cohort_command
 
-    monkeypatch.setattr(cohort_command, "worker_pool", lambda *_: pytest.fail("cohort built"))
+    monkeypatch.setattr(cohort_command, "cohort_executor", lambda *_: pytest.fail("cohort built"))
 
 
 BAD_TRAIN = [
@@ -503,6 +503,7 @@ BAD_TRAIN = [
     (["model.lr_schedule=warm"], SETTING, r"model\.lr_schedule must be 'constant' or 'cosine'"),
     # the cohort train.py builds, and the run folder
     (["cohort.workers=0"], ValueError, r"workers must be an integer >= 1, got 0"),
+    (["cohort.executor=bogus"], ValueError, r"executor must be one of \('local', 'dask'\)"),
     (["cohort.mesher.target_elements=0"], SETTING, r"mesher\.target_elements must be at least 1"),
     (["run_dir={tmp}/file"], PermissionError, r"file: cannot write output files there"),
 ]  # fmt: skip
@@ -612,6 +613,9 @@ BAD_COHORT = [
     (["workers=-2"], ValueError, r"workers must be an integer >= 1, got -2"),
     (["n_patients=0"], ValueError, r"n_patients must be an integer >= 1, got 0"),
     (["n_patients=-3"], ValueError, r"n_patients must be an integer >= 1, got -3"),
+    (["executor=bogus"], ValueError, r"executor must be one of \('local', 'dask'\), got 'bogus'"),
+    (["scheduler=tcp://localhost:8786"], ValueError,
+     r"scheduler=tcp://localhost:8786 is a Dask scheduler's address: it needs executor=dask"),
     (["simulate=true", "simulation.friction=-1"], SETTING, r"simulation\.friction must be >= 0"),
     (["simulate=true", "simulation.materials.fat.young=0"], SETTING,
      r"simulation\.materials\.fat: young must be > 0 Pa"),

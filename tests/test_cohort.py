@@ -10,6 +10,8 @@ from fem.cohort import run_cohort
 from fem.contract.trajectory import Trajectory
 
 CONF = str(Path(__file__).resolve().parents[1] / "conf")
+#: Overrides of a fast cohort: 500-900 tetrahedra per breast, no pictures.
+TINY = ("mesher.target_elements=700", "mesher.tolerance=200", "figures=false")
 
 
 def _cfg(out_dir, *overrides):

@@ -9,7 +9,7 @@ import json
 import meshio
 import numpy as np
 import pytest
-from test_cohort import _cfg
+from test_cohort import TINY, _cfg
 from test_predictor import _predict_cfg
 
 import predict
@@ -20,7 +20,6 @@ from fem.contract.trajectory import Trajectory
 from mammo_net import baselines
 from mammo_net.validity import PhysicallyImpossible
 
-TINY = ("mesher.target_elements=700", "mesher.tolerance=200", "figures=false")
 FEW_STEPS = ("simulation.unloaded_steps=5", "simulation.compression_steps=6")
 
 

@@ -1,6 +1,7 @@
 """The cohort command's simulation stage: both FE steps on every meshed breast, and its report.
 
     python -m fem.cohort n_patients=258 out_dir=data/cohort/full simulate=true workers=2
+    python -m fem.cohort ... executor=dask [scheduler=tcp://host:8786]  # on Dask distributed
 
 For each mesh ``<out_dir>/P0007_L.npz`` the stage writes ``<out_dir>/trajectories/P0007_L.npz``
 (the `Trajectory` with both steps, the training data of ``datamodules/``) or, when a step does
@@ -18,14 +19,14 @@ import csv
 import json
 import time
 from collections.abc import Sequence
-from concurrent.futures import as_completed
+from concurrent.futures import Executor, as_completed
 from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
 from fem.breasts.figures import simulation_summary_png
-from fem.breasts.pool import worker_pool
+from fem.breasts.pool import one_blas_thread
 from fem.contract.atomic import atomic_path
 from fem.contract.timeseries import write_time_series
 from fem.contract.trajectory import Trajectory
@@ -48,6 +49,7 @@ COLUMNS = (
 )
 
 
+@one_blas_thread
 def simulate_breast(
     simulation: Simulation, mesh: Path, out_dir: Path, time_series: bool = False
 ) -> dict:
@@ -196,14 +198,14 @@ def simulation_markdown(report: dict) -> str:
 
 
 def simulate_cohort(
+    pool: Executor,
     mesh_dir: Path,
     names: Sequence[str],
     simulation: Simulation,
-    workers: int = 2,
     time_series: bool = False,
     retry_failed: bool = False,
 ) -> dict:
-    """Simulate every unfinished breast of ``names`` (meshes in ``mesh_dir``) in parallel.
+    """Simulate every unfinished breast of ``names`` (meshes in ``mesh_dir``) on ``pool``.
 
     Results go to ``mesh_dir / "trajectories"``; returns the report.
     """
@@ -220,15 +222,12 @@ def simulate_cohort(
         and not (out_dir / f"{n}.failed.json").exists()
     ]
     t0 = time.perf_counter()
-    with (
-        worker_pool(workers) as pool,
-        tqdm(
-            total=len(names),
-            initial=len(names) - len(todo),
-            unit="breast",
-            desc=f"simulate -> {out_dir}",
-        ) as bar,
-    ):
+    with tqdm(
+        total=len(names),
+        initial=len(names) - len(todo),
+        unit="breast",
+        desc=f"simulate -> {out_dir}",
+    ) as bar:
         futures = {
             pool.submit(simulate_breast, simulation, mesh_dir / f"{n}.npz", out_dir, time_series): n
             for n in todo
