@@ -36,7 +36,7 @@ from fem.breasts.figures import breast_sections_png, cohort_summary_png
 from fem.breasts.io import write_mesh
 from fem.breasts.mesh import Mesher
 from fem.breasts.phantom import PhantomGenerator
-from fem.breasts.pool import check_executor, cohort_executor, one_blas_thread
+from fem.breasts.pool import check_executor, check_workers, cohort_executor, one_blas_thread
 from fem.contract.atomic import atomic_path, writable_folder
 from fem.engine.simulation import Simulation
 
@@ -333,9 +333,9 @@ def run_cohort(cfg: DictConfig) -> dict:
     PermissionError
         ``out_dir`` cannot be written.
     """
-    for key in ("n_patients", "workers"):
-        if not (isinstance(cfg[key], int) and cfg[key] >= 1):
-            raise ValueError(f"{key} must be an integer >= 1, got {cfg[key]!r}")
+    if not (isinstance(cfg.n_patients, int) and cfg.n_patients >= 1):
+        raise ValueError(f"n_patients must be an integer >= 1, got {cfg.n_patients!r}")
+    check_workers(cfg.workers)
     check_executor(cfg.executor, cfg.scheduler)
     out_dir = writable_folder(to_absolute_path(cfg.out_dir))
     generator: PhantomGenerator = instantiate(cfg.generator)

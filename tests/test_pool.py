@@ -63,7 +63,7 @@ def test_workers_die_with_a_killed_parent(executor):
 
 
 def test_a_pool_needs_a_worker():
-    with pytest.raises(ValueError, match="workers must be at least 1, got 0"):
+    with pytest.raises(ValueError, match="workers must be an integer >= 1, got 0"):
         worker_pool(0)
 
 

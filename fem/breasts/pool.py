@@ -78,14 +78,15 @@ def one_blas_thread(task: Callable[P, R]) -> Callable[P, R]:
     return one_thread
 
 
-def _check_workers(workers: int) -> None:
-    if workers < 1:
-        raise ValueError(f"workers must be at least 1, got {workers}")
+def check_workers(workers: int) -> None:
+    """Refuse a ``workers`` setting that is not a whole number of processes."""
+    if not (isinstance(workers, int) and workers >= 1):
+        raise ValueError(f"workers must be an integer >= 1, got {workers!r}")
 
 
 def worker_pool(workers: int) -> ProcessPoolExecutor:
     """A process pool of ``workers`` processes that die with the calling process."""
-    _check_workers(workers)
+    check_workers(workers)
     return ProcessPoolExecutor(workers, initializer=die_with_parent, initargs=(os.getpid(),))
 
 
@@ -125,7 +126,7 @@ def dask_client(workers: int, scheduler: str | None = None) -> Iterator[Client]:
         with Client(scheduler) as client:
             yield client
         return
-    _check_workers(workers)
+    check_workers(workers)
     with (
         LocalCluster(n_workers=workers, threads_per_worker=1, processes=True) as cluster,
         Client(cluster) as client,
