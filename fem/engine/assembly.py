@@ -217,11 +217,9 @@ class HyperelasticBody:
 
 @dataclass
 class Model:
-    """A solid body plus parts (skin membrane, plates): energies, forces and tangents add.
-
-    Parts with an ``apply_bounds(x, lower, upper)`` method (rigid plates) also bound DOFs, and
-    parts with ``accept(x, gradient)`` are told each converged load step (lagged friction).
-    """
+    """A solid body plus parts (skin membrane, plates' friction): energies, forces and
+    tangents add. The plates' non-penetration bounds and lagged normal forces are handled in
+    node frames (`fem.engine.constraints.FramedModel`)."""
 
     body: HyperelasticBody
     parts: tuple = ()
@@ -229,21 +227,6 @@ class Model:
     @property
     def cells(self) -> NDArray:
         return self.body.cells
-
-    def bounds(self, x: NDArray) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """Lower and upper bounds (3N,) of the DOFs at positions ``x`` (+-inf: unbounded)."""
-        lower = np.full(self.body.n_dofs, -np.inf)
-        upper = np.full(self.body.n_dofs, np.inf)
-        for p in self.parts:
-            if hasattr(p, "apply_bounds"):
-                p.apply_bounds(x, lower, upper)
-        return lower, upper
-
-    def accept(self, x: NDArray, gradient: NDArray) -> None:
-        """Tell the parts that ``x`` is a converged load step (``gradient = dPi/dx``)."""
-        for p in self.parts:
-            if hasattr(p, "accept"):
-                p.accept(x, gradient)
 
     def min_jacobian(self, x: NDArray) -> float:
         return self.body.min_jacobian(x)

@@ -1,22 +1,26 @@
 """Contact of surface nodes with rigid compression plates: exact non-penetration, Coulomb friction.
 
-A plate is the plane ``z = height`` (cranio-caudal axis z) covering the region anterior to its
-chest-side edge, ``y >= chest_edge``. The body lies above a lower plate (``side = +1``) and
-below an upper plate (``side = -1``).
+A plate is a plane through ``origin`` with the unit ``normal`` pointing into the body, bounded
+by its chest-side edge (the line through ``origin`` perpendicular to the in-plane unit
+``axis``, which points away from the chest) and, optionally, by a finite ``extent``: it covers
+the points ``p`` with ``0 <= (p - origin) . axis <= length`` and ``|(p - origin) . b| <=
+width / 2``, ``b = axis x normal``. The cranio-caudal (CC) plates have normals +-z and axis
++y; the mediolateral-oblique (MLO) plates are those turned about y.
 
-Normal contact is a *bound* on the z coordinate of each candidate node the plate covers,
-``side (z - height) >= 0``: the Newton solver (`fem.engine.solver.newton`) projects its iterates onto
-the bounds and holds a node on the plate while the plate pushes it (an active set with the
-sign of the multiplier checked every iteration). There is no penalty: nodes never penetrate and
-the tangent is not polluted by penalty stiffness. The contact force of a node is the multiplier
-``lambda = side * dPi/dz`` (>= 0) of its bound at equilibrium.
+Normal contact is a *bound*: ``normal . (x_i - origin) >= 0`` for each candidate node the
+plate covers. The Newton solver (`fem.engine.solver.newton`) projects its iterates onto the
+bounds and holds a node on the plate while the plate pushes it (an active set with the sign of
+the multiplier checked every iteration); `fem.engine.constraints.FramedModel` turns the
+half-space into a bound on one coordinate of the node's frame. There is no penalty: nodes
+never penetrate and the tangent is not polluted by penalty stiffness. The contact force of a
+node is the multiplier of its bound at equilibrium.
 
 Tangential contact is Coulomb friction with the normal forces *lagged* from the last converged
-load step and the slip measured from the position there (incremental, quasi-static). With
-those fixed, friction derives from a convex potential (Li et al., "Incremental Potential
-Contact", 2020):
+load step and the slip measured in the plate plane from the position there (incremental,
+quasi-static). With those fixed, friction derives from a convex potential (Li et al.,
+"Incremental Potential Contact", 2020):
 
-    D(x) = sum_i mu lambda_i eps f0(|s_i| / eps),   s_i = (x_i, y_i) - (x_i, y_i)_last,
+    D(x) = sum_i mu lambda_i eps f0(|s_i| / eps),   s_i = B (x_i - x_i,last),  B = [b; axis],
     f0(r) = r^2 - r^3 / 3 (r < 1),   r - 1/3 (r >= 1),
 
 so the friction force ``mu lambda_i f1(|s_i|/eps)`` (``f1 = f0'``: ``2 r - r^2``, then 1) grows
@@ -34,9 +38,11 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import sparse
 
-Z_AXIS = 2  #: cranio-caudal axis
-Y_AXIS = 1  #: anteroposterior axis
-TANGENTIAL = (0, 1)  #: the plate's in-plane axes (x, y)
+#: How far a unit vector may be from unit length or orthogonality.
+UNIT_TOLERANCE = 1e-9
+
+#: Depth beyond a plate's surface, mm, from which a node counts as behind the plate.
+BEHIND = 1e-6
 
 
 def friction_mollifier(r: NDArray) -> tuple[NDArray, NDArray, NDArray]:
@@ -57,18 +63,18 @@ def friction_mollifier(r: NDArray) -> tuple[NDArray, NDArray, NDArray]:
 
 @dataclass
 class RigidPlate:
-    """A rigid plate perpendicular to z: a bound on its candidate nodes, and their friction.
+    """A rigid plate: a bound on its candidate nodes along its normal, and their friction.
 
     Parameters
     ----------
     nodes : (M,) int
         Candidate nodes (the skin).
-    height : float
-        z of the plate surface, mm (moved by the compression driver).
-    side : int
-        +1 lower plate (body above), -1 upper plate (body below).
-    chest_edge : float
-        y of the plate's chest-side edge, mm; nodes with ``y < chest_edge`` are behind it.
+    origin : (3,) float
+        A point of the plate surface on its chest-side edge, mm (moved by the driver).
+    normal : (3,) float
+        Unit normal into the body.
+    axis : (3,) float
+        Unit in-plane vector perpendicular to the chest-side edge, away from the chest.
     n_nodes : int
         Number of mesh nodes (the force vector has ``3 n_nodes`` entries).
     friction : float
@@ -78,67 +84,75 @@ class RigidPlate:
         elastic slip of ABAQUS' penalty friction, 0.5 % of a typical element length; 0.01 mm
         took 1.7x the Newton iterations on a breast, 0.1 mm is a tenth of a millimetre of
         stick compliance on centimetres of plate travel).
+    extent : (2,) float
+        ``(length, width)`` of the plate, mm: along ``axis`` from the chest-side edge and
+        across it, centred on ``origin`` (inf: unbounded).
     """
 
     nodes: NDArray
-    height: float
-    side: int
-    chest_edge: float
+    origin: NDArray
+    normal: NDArray
+    axis: NDArray
     n_nodes: int
     friction: float = 0.0
     slip_regularization: float = 0.1
+    extent: tuple[float, float] = (np.inf, np.inf)
     normal_force: NDArray = field(init=False, repr=False)
     anchor: NDArray = field(init=False, repr=False)
+    behind: NDArray | None = field(init=False, repr=False, default=None)
 
     def __post_init__(self) -> None:
-        if self.side not in (1, -1):
-            raise ValueError(f"side must be +1 (lower plate) or -1 (upper plate), got {self.side}")
+        self.origin = np.asarray(self.origin, float).copy()
+        self.normal, self.axis = np.asarray(self.normal, float), np.asarray(self.axis, float)
+        if (
+            abs(np.linalg.norm(self.normal) - 1) > UNIT_TOLERANCE
+            or abs(np.linalg.norm(self.axis) - 1) > UNIT_TOLERANCE
+            or abs(self.normal @ self.axis) > UNIT_TOLERANCE
+        ):
+            raise ValueError(
+                f"plate normal {self.normal} and axis {self.axis} must be orthogonal unit vectors"
+            )
         if self.friction < 0:
             raise ValueError(f"friction coefficient must be >= 0, got {self.friction}")
+        if not all(e > 0 for e in self.extent):
+            raise ValueError(f"plate extent (length, width) must be > 0 mm, got {self.extent}")
         self.nodes = np.asarray(self.nodes, np.int64)
         self.normal_force = np.zeros(len(self.nodes))
         self.anchor = np.zeros((len(self.nodes), 2))
-        self._z = 3 * self.nodes + Z_AXIS
-        self._t = 3 * self.nodes[:, None] + np.array(TANGENTIAL)  # (M, 2) tangential DOFs
+        self.tangents = np.stack([np.cross(self.axis, self.normal), self.axis])  # (2, 3): B
+        self._dofs = 3 * self.nodes[:, None] + np.arange(3)  # (M, 3)
 
-    # -- normal contact: bounds and multipliers ---------------------------------------------
+    @property
+    def frame(self) -> NDArray[np.float64]:
+        """Rows origin, normal, axis (3, 3): the plate as the Trajectory records it."""
+        return np.stack([self.origin, self.normal, self.axis])
+
+    # -- normal contact: geometry and multipliers ---------------------------------------------
     def covered(self, x: NDArray) -> NDArray[np.bool_]:
-        """Which candidate nodes lie in front of the chest-side edge, (M,) bool."""
-        return x[self.nodes, Y_AXIS] >= self.chest_edge
+        """Which candidate nodes the plate bounds, (M,) bool: those over the plate (in front of
+        its chest-side edge, within its extent) except those that were beyond its surface at
+        the last converged step (`behind`: they lie behind its edge, and sliding forward
+        they would meet the edge, not the surface)."""
+        d = x[self.nodes] - self.origin
+        along, across = d @ self.axis, d @ self.tangents[0]
+        over = (along >= 0) & (along <= self.extent[0]) & (np.abs(across) <= self.extent[1] / 2)
+        return over if self.behind is None else over & ~self.behind
 
-    def apply_bounds(self, x: NDArray, lower: NDArray, upper: NDArray) -> None:
-        """Tighten the DOF bounds ``lower``/``upper`` (3N,) with this plate, in place."""
-        dofs = self._z[self.covered(x)]
-        if self.side > 0:
-            lower[dofs] = np.maximum(lower[dofs], self.height)
-        else:
-            upper[dofs] = np.minimum(upper[dofs], self.height)
+    def gap(self, x: NDArray) -> NDArray[np.float64]:
+        """Signed distance of each candidate node from the plate plane along the normal, mm
+        (negative: inside the plate), (M,)."""
+        return (x[self.nodes] - self.origin) @ self.normal
 
-    def penetration(self, x: NDArray) -> NDArray[np.float64]:
-        """``side (height - z)`` of each candidate node, mm (positive: inside the plate)."""
-        return self.side * (self.height - x[self.nodes, Z_AXIS])
-
-    def contact_forces(self, x: NDArray, gradient: NDArray) -> NDArray[np.float64]:
-        """Normal force of each candidate node, Pa mm^2, (M,): the multiplier of its bound.
-
-        ``gradient`` is ``dPi/dx`` (3N,) at equilibrium (internal minus external forces); a node
-        on the plate carries ``side * gradient_z`` (the plate can only push), others nothing.
-        """
-        on_plate = self.covered(x) & (self.penetration(x) >= -1e-9)
-        return np.where(on_plate, np.maximum(self.side * gradient[self._z], 0.0), 0.0)
-
-    def reaction(self, x: NDArray, gradient: NDArray) -> float:
-        """Total normal force of the plate on the body, Pa mm^2 (along ``side * z``)."""
-        return float(self.contact_forces(x, gradient).sum())
-
-    def accept(self, x: NDArray, gradient: NDArray) -> None:
-        """Start a new load step from the converged ``x``: lag its normal forces, anchor slip."""
-        self.normal_force = self.contact_forces(x, gradient)
-        self.anchor = x[self.nodes][:, TANGENTIAL].copy()
+    def accept(self, x: NDArray, normal_force: NDArray) -> None:
+        """Start a new load step from the converged ``x``: lag the normal forces (M,) (Pa mm^2,
+        the multipliers of the bounds) and anchor the slip."""
+        self.normal_force = np.asarray(normal_force, float)
+        self.anchor = x[self.nodes] @ self.tangents.T
+        self.behind = self.gap(x) < -BEHIND
 
     # -- friction: energy, force, tangent ---------------------------------------------------
     def _slip(self, x: NDArray) -> tuple[NDArray, NDArray, NDArray]:
-        s = x[self.nodes][:, TANGENTIAL] - self.anchor  # (M, 2)
+        s = x[self.nodes] @ self.tangents.T - self.anchor  # (M, 2)
         norm = np.linalg.norm(s, axis=1)
         return s, norm, self.friction * self.normal_force  # limit forces (M,)
 
@@ -161,11 +175,12 @@ class RigidPlate:
         _, f1, _ = friction_mollifier(r)
         # f1(r) / |s| -> 2 / eps as the slip vanishes.
         scale = np.where(r > 1e-12, f1 / np.maximum(norm, 1e-300), 2.0 / eps)
-        np.add.at(f, self._t, (limit * scale)[:, None] * s)
+        np.add.at(f, self._dofs, ((limit * scale)[:, None] * s) @ self.tangents)
         return f
 
     def tangent(self, x: NDArray) -> sparse.csr_matrix:
-        """``d2D/dx2`` (3N, 3N): 2 x 2 blocks, ``mu lambda [f1'/eps n n^T + f1/|s| (I - n n^T)]``."""
+        """``d2D/dx2`` (3N, 3N): 3 x 3 blocks ``B^T mu lambda [f1'/eps n n^T + f1/|s| (I - n n^T)] B``
+        with ``n`` the slip direction in the plate plane."""
         n = 3 * self.n_nodes
         if self.friction == 0:
             return sparse.csr_matrix((n, n))
@@ -181,6 +196,7 @@ class RigidPlate:
         blocks = limit[:, None, None] * (
             radial[:, None, None] * nn + hoop[:, None, None] * (np.eye(2) - nn)
         )
-        rows = np.repeat(self._t, 2, axis=1).ravel()
-        cols = np.tile(self._t, (1, 2)).ravel()
+        blocks = np.einsum("ai,mab,bj->mij", self.tangents, blocks, self.tangents)  # (M, 3, 3)
+        rows = np.repeat(self._dofs, 3, axis=1).ravel()
+        cols = np.tile(self._dofs, (1, 3)).ravel()
         return sparse.csr_matrix((blocks.ravel(), (rows, cols)), shape=(n, n))

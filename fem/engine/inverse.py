@@ -5,7 +5,7 @@
 That is only a first-order estimate, because the imaged shape is not stress-free. The true
 unloaded shape ``X`` solves the inverse problem ``forward(X) = x_img``, where ``forward(X)`` is
 the equilibrium of the body with stress-free reference ``X`` under prone gravity (+y body force,
-interface nodes fixed in y at their imaged positions, the same load-free pins).
+the chest wall of `fem.engine.boundary.chest_wall` on the imaged shape).
 
 It is found by the backward-displacement fixed point (Sellier 2011, "An iterative method for
 the inverse elasto-static problem"; used for prone breast MRI by Eiben et al. and Rajagopal et
@@ -36,19 +36,14 @@ from numpy.typing import NDArray
 from fem.contract.quality import signed_volume
 from fem.contract.trajectory import Trajectory
 from fem.engine.assembly import Model
-from fem.engine.simulation import (
-    AP_AXIS,
-    PAPER_MATERIALS,
-    Material,
-    breast_model,
-    chest_wall_free_dofs,
-)
+from fem.engine.boundary import AP_AXIS, chest_wall
+from fem.engine.constraints import NodeFrames, equilibrium_path
+from fem.engine.simulation import PAPER_MATERIALS, Material, breast_model
 from fem.engine.solver import (
     DEFAULT_NEWTON,
     GRAVITY_FORCE_DENSITY,
     NewtonSettings,
     SolverError,
-    load_ramp,
     nodal_body_force,
 )
 
@@ -127,7 +122,7 @@ def check_orientation(traj: Trajectory, reference: NDArray, iteration: int) -> N
 def forward(
     traj: Trajectory,
     reference: NDArray,
-    free: NDArray[np.bool_],
+    frames: NodeFrames,
     materials: Mapping[str, Material],
     n_load_steps: int,
     force_density: NDArray,
@@ -138,8 +133,8 @@ def forward(
 
     Parameters
     ----------
-    free : (3N,) bool
-        Free DOFs; the fixed ones keep their values in ``reference``.
+    frames : NodeFrames
+        The chest wall's held directions; held coordinates keep their values in ``reference``.
     force_density : (3,) float
         Body force per reference volume, Pa/mm.
     guess : (N, 3) float, optional
@@ -163,15 +158,15 @@ def forward(
     f = nodal_body_force(model.body, force_density)
     if guess is not None and model.min_jacobian(guess) > settings.min_jacobian:
         try:
-            return _continue_from(model, guess, free, f, settings)
+            return _continue_from(model, guess, frames, f, settings)
         except SolverError:
             pass  # fall back to the full ramp from the reference
     record = np.arange(1, n_load_steps + 1) / n_load_steps
-    return load_ramp(model, moved.points, free, lambda s: s * f, record, settings)[-1]
+    return equilibrium_path(model, frames, moved.points, lambda s: s * f, record, settings)[-1]
 
 
 def _continue_from(
-    model: Model, guess: NDArray, free: NDArray[np.bool_], f: NDArray, settings: NewtonSettings
+    model: Model, guess: NDArray, frames: NodeFrames, f: NDArray, settings: NewtonSettings
 ) -> NDArray[np.float64]:
     """Equilibrium under ``f`` from ``guess`` by the homotopy ``(1 - s) f_int(guess) + s f``.
 
@@ -179,10 +174,10 @@ def _continue_from(
     `CONTINUATION_CUTBACKS` halvings of the load increment: a guess that far off is better
     replaced by the full ramp from the reference."""
     f0 = model.internal_force(np.asarray(guess, float))
-    return load_ramp(
+    return equilibrium_path(
         model,
+        frames,
         guess,
-        free,
         lambda s: (1.0 - s) * f0 + s * f,
         [1.0],
         settings,
@@ -248,14 +243,16 @@ def inverse_unloaded_state(
         raise ValueError(f"relaxation must be 'aitken' or 'none', got {relaxation!r}")
     source = traj.source
     target = np.asarray(traj.points, float)
-    # One boundary-condition mask for all iterates: interface nodes fixed in y, load-free pins
-    # chosen on the imaged shape. Fixed DOFs never move, so they stay at their imaged values.
-    free = chest_wall_free_dofs(traj, source).ravel()
+    # One chest wall for all iterates (`fem.engine.boundary.chest_wall`, sliding), its normals
+    # on the imaged shape. Held coordinates never move, so they stay at their imaged values.
+    frames = NodeFrames.build(traj.n_nodes, chest_wall(traj, target))
     density = prone_gravity() * force_density / GRAVITY_FORCE_DENSITY
 
     def solve(reference: NDArray, guess: NDArray | None, k: int) -> NDArray:
         try:
-            return forward(traj, reference, free, materials, n_load_steps, density, guess, settings)
+            return forward(
+                traj, reference, frames, materials, n_load_steps, density, guess, settings
+            )
         except SolverError as exc:
             raise InverseError(f"{source}: forward solve of iterate X_{k} failed: {exc}") from exc
 

@@ -4,34 +4,48 @@
 runs it on a user's file.
 
 The breast model is the tissue body (decoupled neo-Hookean tetrahedra with nodal volumetric
-averaging) plus the skin, a 2 mm incompressible neo-Hookean membrane on the outer surface.
+averaging, one material per tissue or per element set) plus the skin, a 2 mm incompressible
+neo-Hookean membrane on the outer surface (or a solid element set).
 
-Step 1, the unloaded state: the breast was imaged prone, hanging anteriorly under gravity; a
-body force ``rho g`` pointing posteriorly (-y in RAS+) removes that load, ramped in recorded
-steps. The nodes of the muscle/breast interface are fixed in the anteroposterior direction
-only and slide along the chest wall; the remaining rigid-body modes (translation in x and z,
-rotation about y) are removed by pinning DOFs that carry no load for a load along y.
+Step 1, the unloaded state (optional): the breast was imaged prone, hanging anteriorly under
+gravity; a body force ``rho g`` pointing posteriorly (-y in RAS+) removes that load, ramped in
+recorded steps.
 
-Step 2, compression: the unloaded shape is the stress-free reference; two rigid
-plates perpendicular to z (`fem.engine.contact`: exact non-penetration, Coulomb friction 0.25), the
-lower at the inframammary fold, the upper moving down to the compressed thickness; the standing
-patient's gravity along -z (switchable).
+Step 2, compression: the unloaded shape is the stress-free reference; two parallel rigid
+plates (`fem.engine.contact`: exact non-penetration, Coulomb friction 0.25), cranio-caudal or
+mediolateral-oblique (`fem.engine.boundary.plate_schedule`), the lower at the breast's lowest
+skin node along its normal, the upper moving down to the compressed thickness, or plates with
+a prescribed pose and motion; the standing patient's gravity along -z.
+
+In both steps the chest wall holds the breast (`fem.engine.boundary.chest_wall`: by default the
+muscle does not deform and the interface slides along it), plus a user's held directions.
 """
 
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TypeVar
+from typing import Any, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
 
-from fem.contract.quality import boundary_faces, posterior_cut, signed_volume
+from fem.contract.quality import signed_volume
 from fem.contract.trajectory import NodeFlag, Tissue, Trajectory
 from fem.engine.assembly import HyperelasticBody, Model
+from fem.engine.boundary import (
+    CHEST_WALLS,
+    VIEWS,
+    PlateSchedule,
+    chest_wall,
+    lower_plate_normal,
+    plate_schedule,
+    read_constraints,
+    skin_span,
+)
+from fem.engine.constraints import HeldDirections, NodeFrames, equilibrium_path
 from fem.engine.contact import RigidPlate
 from fem.engine.material import lame_parameters
 from fem.engine.membrane import SkinMembrane
@@ -40,32 +54,75 @@ from fem.engine.solver import (
     GRAVITY_FORCE_DENSITY,
     NewtonSettings,
     SolverError,
-    load_ramp,
     nodal_body_force,
 )
 
-AP_AXIS = 1  #: anteroposterior axis (y, RAS+)
 T = TypeVar("T")
+
+#: Thickness of the skin membrane, mm (the paper's 2 mm membrane elements).
+SKIN_THICKNESS = 2.0
 
 
 @dataclass(frozen=True)
 class Material:
-    """Neo-Hookean parameters of one tissue: Young's modulus (Pa) and Poisson's ratio."""
+    """Neo-Hookean parameters of one tissue or element set.
 
-    young: float
+    Either Young's modulus (Pa) and Poisson's ratio, or the shear and bulk moduli ``mu`` and
+    ``kappa`` (Pa). ``elements`` (a text or ``.npy`` file of element indices) makes it an
+    element set, applied after the tissues; without it the name must be a tissue (``fat``,
+    ``gland``, ``muscle``) or ``skin``, the membrane of thickness ``membrane`` (mm; default
+    `SKIN_THICKNESS`). A skin with ``elements`` is a solid set and there is no membrane.
+    """
+
+    young: float | None = None
     poisson: float = 0.495
+    mu: float | None = None
+    kappa: float | None = None
+    elements: str | None = None
+    membrane: float | None = None
 
+    def check(self, name: str) -> None:
+        """Raise ``ValueError`` naming ``simulation.materials.<name>`` for bad parameters."""
+        key = f"simulation.materials.{name}"
+        if (self.young is None) == (self.mu is None) or (self.mu is None) != (self.kappa is None):
+            raise ValueError(f"{key}: give young (and poisson) or mu and kappa, not both/neither")
+        if self.young is not None and not (self.young > 0 and 0 <= self.poisson < 0.5):
+            raise ValueError(
+                f"{key}: young must be > 0 Pa and poisson in [0, 0.5), got young={self.young}, "
+                f"poisson={self.poisson}"
+            )
+        if self.mu is not None and not (self.mu > 0 and self.kappa > 0):
+            raise ValueError(f"{key}: mu and kappa must be > 0 Pa, got {self.mu}, {self.kappa}")
+        if self.membrane is not None and (
+            name != "skin" or self.elements is not None or not self.membrane > 0
+        ):
+            raise ValueError(f"{key}: membrane (thickness > 0 mm) is for a skin without elements")
+        if self.elements is None and name not in TISSUE_NAMES and name != "skin":
+            raise ValueError(
+                f"{key}: '{name}' is not a tissue ({', '.join(TISSUE_NAMES)}, skin): give its "
+                "elements file"
+            )
+
+    def moduli(self) -> tuple[float, float]:
+        """Shear and bulk moduli, Pa."""
+        if self.mu is not None:
+            return float(self.mu), float(self.kappa)
+        return lame_parameters(self.young, self.poisson)
+
+    @property
+    def is_membrane(self) -> bool:
+        return self.elements is None and self.membrane is not None
+
+
+TISSUE_NAMES = tuple(t.name.lower() for t in Tissue if t != Tissue.BACKGROUND)
 
 #: The reference paper's tissue parameters.
 PAPER_MATERIALS: dict[str, Material] = {
     "fat": Material(1100.0),
     "gland": Material(2500.0),
     "muscle": Material(6000.0),
-    "skin": Material(1000.0),
+    "skin": Material(1000.0, membrane=SKIN_THICKNESS),
 }
-
-#: Thickness of the skin membrane, mm (the paper's 2 mm membrane elements).
-SKIN_THICKNESS = 2.0
 
 #: Coulomb friction coefficient between the skin and the compression plates (the paper's 0.25).
 FRICTION = 0.25
@@ -74,262 +131,171 @@ FRICTION = 0.25
 #: (`fem.engine.assembly.HyperelasticBody.stabilization`).
 VOLUMETRIC_STABILIZATION = 0.1
 
+#: Body forces of the steps, Pa/mm: prone gravity removed (posterior), standing gravity.
+UNLOADED_GRAVITY = (0.0, -GRAVITY_FORCE_DENSITY, 0.0)
+STANDING_GRAVITY = (0.0, 0.0, -GRAVITY_FORCE_DENSITY)
+
+
+def read_indices(path: str | Path, what: str) -> NDArray[np.int64]:
+    """Integer indices from a text or ``.npy`` file; ``what`` names the setting in errors."""
+    path = Path(path)
+    try:
+        values = np.load(path, allow_pickle=False) if path.suffix == ".npy" else np.loadtxt(path)
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"{path}: cannot read indices ({what}): {exc}") from exc
+    values = np.atleast_1d(values).ravel()
+    if values.size == 0 or not np.all(values == np.round(values)):
+        raise ValueError(f"{path}: {what} must be a non-empty list of integer indices")
+    return values.astype(np.int64)
+
 
 def element_moduli(
-    tissue: NDArray, materials: Mapping[str, Material], source: str = "mesh"
+    tissue: NDArray,
+    materials: Mapping[str, Material],
+    source: str = "mesh",
+    sets: Mapping[str, NDArray] | None = None,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Shear and bulk moduli (Pa) of each element from its tissue label.
+    """Shear and bulk moduli (Pa) of each element: by tissue label, then element sets.
+
+    ``sets`` maps a material name to its element indices (the materials with ``elements``).
 
     Raises
     ------
     ValueError
-        A tissue present in the mesh has no entry in ``materials``.
+        An element has no material (a tissue without parameters and no set covering it).
     """
-    mu, kappa = np.zeros(len(tissue)), np.zeros(len(tissue))
+    mu, kappa = np.full(len(tissue), np.nan), np.full(len(tissue), np.nan)
     for t in np.unique(tissue):
         name = Tissue(int(t)).name.lower()
-        if name not in materials:
+        if name in materials and materials[name].elements is None:
+            mu[tissue == t], kappa[tissue == t] = materials[name].moduli()
+    for name, elements in (sets or {}).items():
+        if elements.min() < 0 or elements.max() >= len(tissue):
             raise ValueError(
-                f"{source}: tissue '{name}' ({int((tissue == t).sum())} elements) has no material "
-                f"parameters (given: {sorted(materials)})"
+                f"{materials[name].elements}: element indices of simulation.materials.{name} "
+                f"must lie in [0, {len(tissue)}), got [{elements.min()}, {elements.max()}]"
             )
-        m = materials[name]
-        mu[tissue == t], kappa[tissue == t] = lame_parameters(m.young, m.poisson)
+        mu[elements], kappa[elements] = materials[name].moduli()
+    missing = np.isnan(mu)
+    if missing.any():
+        names = sorted({Tissue(int(t)).name.lower() for t in tissue[missing]})
+        raise ValueError(
+            f"{source}: tissue {', '.join(map(repr, names))} ({int(missing.sum())} elements) has "
+            f"no material parameters (given: {sorted(materials)})"
+        )
     return mu, kappa
 
 
-def chest_wall_nodes(traj: Trajectory) -> NDArray[np.int64]:
-    """The breast's nodes on the chest wall: the muscle/breast interface (``MUSCLE_INTERFACE``
-    nodes), or for a breast without muscle elements or such nodes the nodes of its flat
-    posterior cut face (`fem.contract.quality.posterior_cut`), where a segmentation cropped at
-    the chest wall ends."""
-    interface = traj.flagged(NodeFlag.MUSCLE_INTERFACE)
-    if interface.size or (traj.tissue == Tissue.MUSCLE).any():
-        return interface
-    faces, _ = boundary_faces(traj.points, traj.cells)
-    return np.unique(faces[posterior_cut(traj.points, faces)])
-
-
-def chest_wall_free_dofs(
-    traj: Trajectory, source: str = "mesh", translations: tuple[int, ...] = (0, 2)
-) -> NDArray[np.bool_]:
-    """Free-DOF mask (N, 3): chest-wall nodes (`chest_wall_nodes`) fixed along y, plus
-    load-free rigid-body pins.
-
-    The pins: the chest-wall node nearest their centroid is fixed along the axes in
-    ``translations`` (x and z for the unloaded state; x only under the plates, which hold z);
-    the chest-wall node farthest from it in z is fixed in x, which stops the spin about y.
-    Neither carries load when the loads act along y (step 1) or z (step 2).
-
-    Raises
-    ------
-    ValueError
-        The mesh has no chest-wall nodes.
-    """
-    interface = chest_wall_nodes(traj)
-    if interface.size < 2:
-        raise ValueError(
-            f"{source}: no muscle/breast interface nodes (field 'node_flags') and no flat "
-            "posterior cut face: no chest wall to hold; give its nodes as simulation.fixed_nodes"
-        )
-    free = np.ones((traj.n_nodes, 3), bool)
-    free[interface, AP_AXIS] = False
-    p = traj.points[interface]
-    anchor = interface[np.argmin(np.linalg.norm(p - p.mean(0), axis=1))]
-    free[anchor, list(translations)] = False
-    far = interface[np.argmax(np.abs(p[:, 2] - traj.points[anchor, 2]))]
-    free[far, 0] = False
-    return free
-
-
-def boundary_free_dofs(
+def breast_model(
     traj: Trajectory,
-    source: str,
-    fixed: NDArray | None = None,
-    translations: tuple[int, ...] = (0, 2),
-) -> NDArray[np.bool_]:
-    """Free-DOF mask (N, 3): the chest-wall condition, or the clamped nodes ``fixed``.
-
-    Raises
-    ------
-    ValueError
-        A ``fixed`` index outside the mesh, or no chest-wall nodes without ``fixed``.
-    """
-    if fixed is None:
-        return chest_wall_free_dofs(traj, source, translations)
-    fixed = np.asarray(fixed, np.int64)
-    if fixed.size == 0 or fixed.min() < 0 or fixed.max() >= traj.n_nodes:
-        raise ValueError(
-            f"{source}: fixed nodes must be indices in [0, {traj.n_nodes}), got {fixed.size} "
-            f"indices in [{fixed.min(initial=0)}, {fixed.max(initial=0)}]"
-        )
-    free = np.ones((traj.n_nodes, 3), bool)
-    free[fixed] = False
-    return free
+    materials: Mapping[str, Material],
+    averaging: str = "nodal",
+    sets: Mapping[str, NDArray] | None = None,
+) -> Model:
+    """The tissue body and, when ``materials`` has a membrane ``"skin"``, the skin membrane on
+    ``traj.skin``."""
+    mu, kappa = element_moduli(traj.tissue, materials, traj.source, sets)
+    stabilization = VOLUMETRIC_STABILIZATION if averaging == "nodal" else 0.0
+    body = HyperelasticBody(traj.points, traj.cells, mu, kappa, averaging, stabilization)
+    parts = ()
+    skin = materials.get("skin")
+    if skin is not None and skin.is_membrane and len(traj.skin):
+        parts = (SkinMembrane(traj.points, traj.skin, skin.moduli()[0], skin.membrane),)
+    return Model(body, parts)
 
 
 def unloaded_state(
     traj: Trajectory,
     materials: Mapping[str, Material] = PAPER_MATERIALS,
     n_steps: int = 100,
-    force_density: float = GRAVITY_FORCE_DENSITY,
+    body_force: Sequence[float] = UNLOADED_GRAVITY,
     averaging: str = "nodal",
     settings: NewtonSettings = DEFAULT_NEWTON,
-    fixed: NDArray | None = None,
+    chest: str = "sliding",
+    held: HeldDirections | None = None,
+    sets: Mapping[str, NDArray] | None = None,
 ) -> NDArray[np.float64]:
     """Step 1: reverse the prone gravity, ramped, recording ``n_steps`` equal load steps.
 
-    ``fixed`` (node indices) clamps those nodes instead of the chest-wall condition
-    (`chest_wall_free_dofs`), for meshes without a chest wall of their own.
+    Parameters
+    ----------
+    body_force : (3,) float
+        Body force applied, Pa/mm (default: the prone gravity removed, ``rho g`` along -y).
+    chest : str
+        The chest-wall condition (`fem.engine.boundary.chest_wall`).
+    held : HeldDirections, optional
+        A user's held directions, added to the chest wall's.
 
     Returns
     -------
     (n_steps, N, 3) float64
         Node positions, mm, at load factors ``1/n_steps, 2/n_steps, ..., 1``.
     """
-    model = breast_model(traj, materials, averaging)
-    source = traj.source
-    free = boundary_free_dofs(traj, source, fixed, translations=(0, 2)).ravel()
-    direction = np.zeros(3)
-    direction[AP_AXIS] = -1.0  # posterior: undo the anterior pull of prone gravity
-    f = nodal_body_force(model.body, force_density * direction)
+    model = breast_model(traj, materials, averaging, sets)
+    held_all = chest_wall(traj, traj.points, chest, (0, 2)) + (held or HeldDirections.none())
+    frames = NodeFrames.build(traj.n_nodes, held_all)
+    f = nodal_body_force(model.body, np.asarray(body_force, float))
     record = np.arange(1, n_steps + 1) / n_steps
-    return load_ramp(model, traj.points, free, lambda s: s * f, record, settings)
-
-
-def breast_model(
-    traj: Trajectory, materials: Mapping[str, Material], averaging: str = "nodal"
-) -> Model:
-    """The tissue body and, when ``materials`` has ``"skin"``, the skin membrane on ``traj.skin``."""
-    source = traj.source
-    mu, kappa = element_moduli(traj.tissue, materials, source)
-    stabilization = VOLUMETRIC_STABILIZATION if averaging == "nodal" else 0.0
-    body = HyperelasticBody(traj.points, traj.cells, mu, kappa, averaging, stabilization)
-    parts = ()
-    if "skin" in materials and len(traj.skin):
-        skin_mu, _ = lame_parameters(materials["skin"].young, materials["skin"].poisson)
-        parts = (SkinMembrane(traj.points, traj.skin, float(skin_mu), SKIN_THICKNESS),)
-    return Model(body, parts)
+    return equilibrium_path(model, frames, traj.points, lambda s: s * f, record, settings)
 
 
 @dataclass
 class CompressionResult:
-    """Recorded compression steps: positions (T, N, 3), plate edges (T, 2, 2) as (y, z) of the
-    lower and upper plate, and the compression ratio (T,)."""
+    """Recorded compression steps: positions (T, N, 3), plates (T, 2, 3, 3) as rows origin,
+    normal, axis of the lower and upper plate, and the compression ratio (T,)."""
 
     positions: NDArray
     plates: NDArray
     compression_ratio: NDArray
 
 
-@dataclass(frozen=True)
-class PlateSchedule:
-    """Where the rigid plates of the compression step are.
-
-    The lower plate sits at ``bottom``, the lowest skin node of the unloaded shape (the
-    inframammary fold); the upper plate starts at ``top``, the highest skin node (first
-    contact), and moves down to ``bottom + thickness`` at load factor 1. Both plates reach
-    back to ``edge``, the y of their chest-side edge. Millimetres.
-    """
-
-    bottom: float
-    top: float
-    thickness: float
-    edge: float
-
-    def height(self, s: NDArray | float) -> NDArray | float:
-        """Upper plate z at load factor ``s`` in [0, 1]."""
-        return self.top - (self.top - self.bottom - self.thickness) * s
-
-    def recorded(self, n_steps: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """Plate edges (T, 2, 2) as (y, z) of the lower and upper plate, and the compression
-        ratio (T,), at the ``n_steps`` equally spaced recorded load factors ``k / n_steps``."""
-        heights = self.height(np.arange(1, n_steps + 1) / n_steps)
-        plates = np.zeros((n_steps, 2, 2))
-        plates[:, :, 0] = self.edge
-        plates[:, 0, 1] = self.bottom
-        plates[:, 1, 1] = heights
-        return plates, 1.0 - (heights - self.bottom) / (self.top - self.bottom)
-
-
-def plate_schedule(
-    traj: Trajectory, start: NDArray, compressed_thickness: float, fixed: NDArray | None = None
-) -> PlateSchedule:
-    """The plates that compress the unloaded shape ``start`` (N, 3) of ``traj``'s mesh to
-    ``compressed_thickness`` (mm). Their chest-side edge is at the most posterior
-    chest-wall node, or, with clamped nodes ``fixed``, at the most anterior of those.
-
-    Raises
-    ------
-    ValueError
-        The thickness is not positive or not below the breast's cranio-caudal extent.
-    """
-    skin_z = start[traj.flagged(NodeFlag.SKIN), 2]
-    bottom, top = float(skin_z.min()), float(skin_z.max())
-    _check_thickness(compressed_thickness, top - bottom, traj.source)
-    if fixed is None:  # the plates reach back to the (sliding) chest wall
-        edge = float(start[chest_wall_nodes(traj), AP_AXIS].min())
-    else:  # ... or stop in front of the clamped nodes, which they could only crush
-        edge = float(start[np.asarray(fixed), AP_AXIS].max())
-    return PlateSchedule(bottom, top, float(compressed_thickness), edge)
-
-
 def compression(
     traj: Trajectory,
     start: NDArray,
-    compressed_thickness: float,
+    schedule: PlateSchedule,
     materials: Mapping[str, Material] = PAPER_MATERIALS,
     n_steps: int = 70,
-    gravity: bool = True,
+    body_force: Sequence[float] = STANDING_GRAVITY,
     averaging: str = "nodal",
     friction: float = FRICTION,
     settings: NewtonSettings = DEFAULT_NEWTON,
-    fixed: NDArray | None = None,
+    chest: str = "sliding",
+    held: HeldDirections | None = None,
+    sets: Mapping[str, NDArray] | None = None,
 ) -> CompressionResult:
-    """Step 2: compress between two rigid plates perpendicular to z with Coulomb friction.
+    """Step 2: compress between two parallel rigid plates with Coulomb friction.
 
-    The unloaded shape ``start`` (N, 3) is the stress-free reference. The lower plate sits at
-    the lowest skin node (the inframammary fold); the upper plate starts at the highest skin
-    node (first contact) and moves down to ``compressed_thickness`` above the lower one in
-    ``n_steps`` recorded steps. Both plates reach back to the chest wall (their chest-side
-    edge is at the most posterior chest-wall node). The standing patient's gravity
-    along -z (when ``gravity`` is true) is ramped with the plate travel. Both plates have the
-    Coulomb coefficient ``friction`` (0: frictionless). ``fixed`` as in `unloaded_state`
-    (the plate edges are then at the most anterior clamped node).
+    The shape ``start`` (N, 3) is the stress-free reference. The plates follow ``schedule``
+    (`fem.engine.boundary.plate_schedule`: from first contact to the compressed thickness) in
+    ``n_steps`` recorded steps; both touch the skin nodes (candidates) in front of their
+    chest-side edge, with the Coulomb coefficient ``friction`` (0: frictionless). The body
+    force (the standing patient's gravity, Pa/mm) is ramped with the plate travel.
     """
-    source = traj.source
-    schedule = plate_schedule(traj, start, compressed_thickness, fixed)
     moved = replace(traj, points=np.asarray(start, float))
-    model = breast_model(moved, materials, averaging)
+    model = breast_model(moved, materials, averaging, sets)
     skin_nodes = traj.flagged(NodeFlag.SKIN)
-    free = boundary_free_dofs(moved, source, fixed, translations=(0,))
-    n, edge = len(start), schedule.edge
-    # Both plates touch from the start (the lowest and the highest skin node): they hold the
-    # breast vertically, so the chest-wall pins fix x only and carry no plate or gravity load.
-    lower = RigidPlate(skin_nodes, schedule.bottom, +1, edge, n, friction)
-    upper = RigidPlate(skin_nodes, schedule.top, -1, edge, n, friction)
-    model = Model(model.body, (*model.parts, lower, upper))
-    # The standing patient's gravity rises with the plate travel (it is fully on at the target).
-    f = nodal_body_force(
-        model.body, np.array([0.0, 0.0, -GRAVITY_FORCE_DENSITY if gravity else 0.0])
-    )
+    n = len(start)
+    lower_frame, upper_frame = schedule.frames(0.0)
+    plates = [
+        RigidPlate(skin_nodes, *frame, n, friction, extent=schedule.extent)
+        for frame in (lower_frame, upper_frame)
+    ]
+    for plate in plates:  # no contact force yet; nodes already beyond a plate are behind it
+        plate.accept(moved.points, np.zeros(len(skin_nodes)))
+    model = Model(model.body, (*model.parts, *plates))
+    held_all = chest_wall(moved, moved.points, chest, (0,)) + (held or HeldDirections.none())
+    frames = NodeFrames.build(n, held_all, lower_frame[1], skin_nodes)
+    f = nodal_body_force(model.body, np.asarray(body_force, float))
     record = np.arange(1, n_steps + 1) / n_steps
 
     def move(s: float) -> None:
-        upper.height = schedule.height(s)
+        for plate, frame in zip(plates, schedule.frames(s), strict=True):
+            plate.origin = frame[0]
 
-    positions = load_ramp(
-        model, start, free.ravel(), lambda s: s * f, record, settings, configure=move
+    positions = equilibrium_path(
+        model, frames, moved.points, lambda s: s * f, record, settings, configure=move
     )
     return CompressionResult(positions, *schedule.recorded(n_steps))
-
-
-def _check_thickness(thickness: float, extent: float, source: str) -> None:
-    if not 0 < thickness < extent:
-        raise ValueError(
-            f"{source}: compressed thickness {thickness:.1f} mm is not smaller than the breast's "
-            f"cranio-caudal extent {extent:.1f} mm (or not positive)"
-        )
 
 
 def _timed(step: str, seconds: dict[str, float], source: str, run: Callable[[], T]) -> T:
@@ -352,50 +318,109 @@ class SimulationFailed(RuntimeError):
         self.step, self.reason, self.seconds = step, reason, seconds
 
 
+def plate_schedule_from(settings: Mapping[str, Any]) -> PlateSchedule:
+    """A `PlateSchedule` from the ``simulation.plates`` setting: ``lower`` and ``upper``, each
+    with ``origin``, ``normal`` (into the breast), ``axis`` (away from the chest) and
+    ``travel`` (mm at the end of the step, default none), and optionally ``extent``
+    (length, width; mm).
+
+    Raises
+    ------
+    ValueError
+        A missing or malformed entry, vectors that are not orthogonal unit vectors, or plates
+        that are not parallel; the message names the setting.
+    """
+    frames, travels = [], []
+    for name in ("lower", "upper"):
+        plate = settings.get(name) if isinstance(settings, Mapping) else None
+        if not isinstance(plate, Mapping):
+            raise ValueError(f"simulation.plates.{name} is missing (origin, normal, axis, travel)")
+        rows = []
+        for key in ("origin", "normal", "axis", "travel"):
+            value = np.asarray(plate.get(key, (0.0, 0.0, 0.0) if key == "travel" else None))
+            if value.shape != (3,) or not np.isfinite(value.astype(float)).all():
+                raise ValueError(
+                    f"simulation.plates.{name}.{key} must be 3 numbers (mm), got {value}"
+                )
+            rows.append(value.astype(float))
+        origin, normal, axis, travel = rows
+        if (
+            abs(np.linalg.norm(normal) - 1) > 1e-6
+            or abs(np.linalg.norm(axis) - 1) > 1e-6
+            or abs(normal @ axis) > 1e-6
+        ):
+            raise ValueError(
+                f"simulation.plates.{name}: normal {normal} and axis {axis} must be orthogonal "
+                "unit vectors"
+            )
+        frames.append(np.stack([origin, normal, axis]))
+        travels.append(travel)
+    if np.abs(frames[0][1] + frames[1][1]).max() > 1e-6:
+        raise ValueError(
+            "simulation.plates: the plates must be parallel, facing each other (upper normal = "
+            f"-lower normal), got {frames[0][1]} and {frames[1][1]}"
+        )
+    extent = tuple(float(e) for e in settings.get("extent", (np.inf, np.inf)))
+    return PlateSchedule(frames[0], frames[1], travels[0], travels[1], extent)
+
+
 @dataclass
 class Simulation:
-    """Both steps of the reference paper on one breast, with one set of parameters.
+    """Both steps of the reference paper on one breast, or a user's own problem.
 
     This is the ``simulation`` config group (`conf/simulation/default.yaml`); its keys are
-    these arguments.
+    these arguments. docs/fem.md shows a published model written as such a config.
 
     Parameters
     ----------
     materials : mapping
-        Tissue name (``fat``, ``gland``, ``muscle``, ``skin``) -> `Material` or a mapping with
-        ``young`` (Pa) and optionally ``poisson``. Leaving out ``skin`` drops the membrane.
+        Name -> `Material` or a mapping of its arguments: tissues (``fat``, ``gland``,
+        ``muscle``), element sets (any name, with ``elements``) and ``skin`` (the membrane,
+        or a solid set with ``elements``; leaving it out drops the membrane).
     unloaded_steps : int
-        Recorded steps of the unloaded state (step 1).
+        Recorded steps of the unloaded state (step 1); 0 skips it (the compression starts from
+        the imaged shape).
     compression_steps : int
         Recorded steps of the compression (step 2).
     compression_ratio : float, optional
-        Final compression ratio ``1 - thickness / extent``, with the cranio-caudal extent of
-        the skin in the unloaded state (the plates' first contact). Default: the breast's
-        ``metadata["target_compression_ratio"]`` (the virtual cohort's sampled ratio).
+        Final compression ratio ``1 - thickness / extent``, with the skin's extent along the
+        plate normal in the unloaded state (the plates' first contact). Default: the breast's
+        ``metadata["target_compression_ratio"]``. Not used with ``plates``.
     friction : float
         Coulomb coefficient between skin and plates (0: frictionless).
-    gravity : bool
-        The standing patient's gravity during compression.
+    view : {"cc", "mlo"}
+        Cranio-caudal or mediolateral-oblique plates (`fem.engine.boundary.plate_schedule`).
+    angle : float
+        The mlo plates' angle from the cc plates about the anteroposterior axis, degrees.
+    plates : mapping, optional
+        Plates with a given pose and motion instead of the view (`plate_schedule_from`).
+    unloaded_gravity, compression_gravity : (3,) float
+        Body force of each step, Pa/mm: by default the prone gravity removed (``rho g`` along
+        -y) and the standing patient's (along -z); zeros switch it off.
     averaging : {"nodal", "element"}
         Volumetric averaging (`fem.engine.assembly.HyperelasticBody`); ``element`` locks.
-    prone_gravity : float
-        Body force removed in step 1, Pa/mm (rho g; 0 skips the unloaded state's load).
-    fixed_nodes : str, optional
-        A text or ``.npy`` file of node indices to clamp instead of the chest-wall condition
-        (sliding muscle/breast interface), for a model without muscle elements.
+    chest_wall : {"sliding", "tied", "anteroposterior", "none"}
+        How the chest wall holds the breast (`fem.engine.boundary.chest_wall`).
+    constraints : str, optional
+        A file of held nodes and directions (`fem.engine.boundary.read_constraints`), added to
+        the chest wall's.
     """
 
-    materials: Mapping[str, Material | Mapping[str, float]] = field(
+    materials: Mapping[str, Material | Mapping[str, Any]] = field(
         default_factory=lambda: dict(PAPER_MATERIALS)
     )
     unloaded_steps: int = 100
     compression_steps: int = 70
     compression_ratio: float | None = None
     friction: float = FRICTION
-    gravity: bool = True
+    view: str = "cc"
+    angle: float = 45.0
+    plates: Mapping[str, Any] | None = None
+    unloaded_gravity: Sequence[float] = UNLOADED_GRAVITY
+    compression_gravity: Sequence[float] = STANDING_GRAVITY
     averaging: str = "nodal"
-    prone_gravity: float = GRAVITY_FORCE_DENSITY
-    fixed_nodes: str | None = None
+    chest_wall: str = "sliding"
+    constraints: str | None = None
 
     def __post_init__(self) -> None:
         self.materials = {
@@ -403,25 +428,32 @@ class Simulation:
             for name, m in self.materials.items()
         }
         for name, m in self.materials.items():
-            if not (m.young > 0 and 0 <= m.poisson < 0.5):
-                raise ValueError(
-                    f"simulation.materials.{name}: young must be > 0 Pa and poisson in "
-                    f"[0, 0.5), got young={m.young}, poisson={m.poisson}"
-                )
+            m.check(name)
+        if "skin" in self.materials and self.materials["skin"].elements is None:
+            skin = self.materials["skin"]
+            if skin.membrane is None:
+                self.materials["skin"] = replace(skin, membrane=SKIN_THICKNESS)
+        self.unloaded_gravity = tuple(float(v) for v in self.unloaded_gravity)
+        self.compression_gravity = tuple(float(v) for v in self.compression_gravity)
         rules = {  # setting: (holds, what it must)
             "compression_ratio": (
                 self.compression_ratio is None or 0 < self.compression_ratio < 1,
                 "lie in (0, 1)",
             ),
-            "unloaded_steps": (self.unloaded_steps >= 1, "be at least 1"),
+            "unloaded_steps": (self.unloaded_steps >= 0, "be at least 0 (0: no unloaded state)"),
             "compression_steps": (self.compression_steps >= 1, "be at least 1"),
             "friction": (self.friction >= 0, "be >= 0 (0: frictionless)"),
+            "view": (self.view in VIEWS, f"be one of {VIEWS}"),
+            "angle": (0 <= self.angle <= 90, "lie in [0, 90] degrees"),
             "averaging": (self.averaging in ("nodal", "element"), "be 'nodal' or 'element'"),
-            "prone_gravity": (self.prone_gravity >= 0, "be >= 0 Pa/mm"),
+            "chest_wall": (self.chest_wall in CHEST_WALLS, f"be one of {CHEST_WALLS}"),
+            "unloaded_gravity": (len(self.unloaded_gravity) == 3, "be 3 numbers (Pa/mm)"),
+            "compression_gravity": (len(self.compression_gravity) == 3, "be 3 numbers (Pa/mm)"),
         }
         for key, (holds, rule) in rules.items():
             if not holds:
                 raise ValueError(f"simulation.{key} must {rule}, got {getattr(self, key)!r}")
+        self._schedule = None if self.plates is None else plate_schedule_from(self.plates)
 
     def target_ratio(self, traj: Trajectory) -> float:
         """The compression ratio to reach: the configured one or the breast's metadata."""
@@ -434,6 +466,18 @@ class Simulation:
             )
         return float(traj.metadata["target_compression_ratio"])
 
+    def schedule(self, traj: Trajectory, start: NDArray) -> PlateSchedule:
+        """The plates for the shape ``start`` (N, 3): the configured ones, or the view's
+        placed at first contact and moving to the target compression ratio."""
+        if self._schedule is not None:
+            return self._schedule
+        normal = lower_plate_normal(
+            self.view, self.angle, traj.metadata.get("laterality"), traj.source
+        )
+        bottom, top = skin_span(traj, start, normal)
+        thickness = (1.0 - self.target_ratio(traj)) * (top - bottom)
+        return plate_schedule(traj, start, thickness, self.view, self.angle)
+
     def __call__(self, traj: Trajectory) -> Trajectory:
         """Simulate both steps; returns a copy of ``traj`` with its trajectories filled in.
 
@@ -442,63 +486,73 @@ class Simulation:
         SimulationFailed
             A step did not converge (the reason names the load factor and Newton's trouble).
         ValueError
-            Bad input (missing material, no chest wall, no compression ratio).
+            Bad input (missing material, no chest wall, no compression ratio, bad files).
         """
         source = traj.source
-        ratio = self.target_ratio(traj)
-        fixed = None
-        if self.fixed_nodes is not None:
-            path = Path(self.fixed_nodes)
-            try:
-                fixed = np.load(path) if path.suffix == ".npy" else np.loadtxt(path, dtype=np.int64)
-            except (OSError, ValueError) as exc:
-                raise ValueError(f"{path}: cannot read fixed node indices: {exc}") from exc
-            fixed = np.atleast_1d(fixed).astype(np.int64)
-        seconds: dict[str, float] = {}
-        unloaded = _timed(
-            "unloaded state",
-            seconds,
-            source,
-            lambda: unloaded_state(
-                traj,
-                self.materials,
-                self.unloaded_steps,
-                self.prone_gravity,
-                self.averaging,
-                fixed=fixed,
-            ),
+        if self._schedule is None:
+            self.target_ratio(traj)
+        held = (
+            None if self.constraints is None else read_constraints(self.constraints, traj.n_nodes)
         )
-        skin_z = unloaded[-1][traj.flagged(NodeFlag.SKIN), 2]
-        thickness = (1.0 - ratio) * float(np.ptp(skin_z))
+        sets = {
+            name: read_indices(m.elements, f"simulation.materials.{name}.elements")
+            for name, m in self.materials.items()
+            if m.elements is not None
+        }
+        options = dict(
+            materials=self.materials,
+            averaging=self.averaging,
+            chest=self.chest_wall,
+            held=held,
+            sets=sets,
+        )
+        seconds: dict[str, float] = {}
+        unloaded = np.zeros((0, traj.n_nodes, 3))
+        if self.unloaded_steps:
+            unloaded = _timed(
+                "unloaded state",
+                seconds,
+                source,
+                lambda: unloaded_state(
+                    traj, n_steps=self.unloaded_steps, body_force=self.unloaded_gravity, **options
+                ),
+            )
+        start = unloaded[-1] if len(unloaded) else traj.points
+        schedule = self.schedule(traj, start)
         result = _timed(
             "compression",
             seconds,
             source,
             lambda: compression(
                 traj,
-                unloaded[-1],
-                thickness,
-                self.materials,
-                self.compression_steps,
-                self.gravity,
-                self.averaging,
-                self.friction,
-                fixed=fixed,
+                start,
+                schedule,
+                n_steps=self.compression_steps,
+                body_force=self.compression_gravity,
+                friction=self.friction,
+                **options,
             ),
         )
-        reference = signed_volume(unloaded[-1], traj.cells).sum()
+        reference = signed_volume(start, traj.cells).sum()
         final = result.positions[-1]
         metadata = {
             **traj.metadata,
             "simulation": {
-                "materials": {k: vars(m) for k, m in self.materials.items()},
+                "materials": {
+                    k: {f: v for f, v in vars(m).items() if v is not None}
+                    for k, m in self.materials.items()
+                },
                 "friction": self.friction,
-                "gravity": self.gravity,
+                "view": self.view if self._schedule is None else "plates",
+                "angle": self.angle,
+                "unloaded_gravity": list(self.unloaded_gravity),
+                "compression_gravity": list(self.compression_gravity),
                 "averaging": self.averaging,
-                "prone_gravity": self.prone_gravity,
-                "fixed_nodes": self.fixed_nodes,
+                "chest_wall": self.chest_wall,
+                "constraints": self.constraints,
+                "plate_extent_mm": [float(e) if np.isfinite(e) else None for e in schedule.extent],
                 "compression_ratio": float(result.compression_ratio[-1]),
-                "compressed_thickness_mm": thickness,
+                "compressed_thickness_mm": schedule.gap(1.0),
                 "volume_change": float(signed_volume(final, traj.cells).sum() / reference - 1),
                 "min_element_volume_ratio": float(
                     (
@@ -506,7 +560,7 @@ class Simulation:
                     ).min()
                 ),
                 "max_unloaded_displacement_mm": float(
-                    np.linalg.norm(unloaded[-1] - traj.points, axis=1).max()
+                    np.linalg.norm(start - traj.points, axis=1).max()
                 ),
                 "seconds": seconds,
             },

@@ -269,7 +269,7 @@ def newton(
 ) -> tuple[NDArray[np.float64], int, NDArray[np.float64]]:
     """Equilibrium positions from the start ``x`` (N, 3); fixed DOFs keep their values.
 
-    When ``body`` has bounds (`Model.bounds`: rigid plates), the free DOFs are projected onto
+    When ``body`` has bounds (`fem.engine.constraints.FramedModel.bounds`: rigid plates), the free DOFs are projected onto
     them and the equilibrium is the minimum of the potential over that box: projected Newton
     with an active set. A DOF on a bound whose gradient pushes it out of the box is held for
     the iteration (its multiplier has the right sign), one that would move inside is released,

@@ -1,0 +1,265 @@
+"""Boundary conditions of a breast: the chest wall, a user's held directions, and the plates.
+
+Chest wall (``chest_wall``; the reference paper: "the muscle as a non-deformable body ... in
+the anteroposterior direction, we constrained the movement of nodes at the interface between
+the muscle and other tissues"):
+
+* ``sliding`` (default): the muscle's nodes are held (it does not deform); the nodes of the
+  muscle/breast interface are held along the chest-wall normal (`chest_wall_normals`) and
+  slide along the wall, resisted only by the muscle elements between them and the held
+  muscle nodes. A breast without muscle elements has nothing to slide on: its flat posterior
+  cut (where a segmentation was cropped at the chest wall,
+  `fem.contract.quality.posterior_cut`) is tied except its rim on the skin, which slides (so
+  the plates, which reach back to the chest wall, move it).
+* ``tied``: the muscle's nodes and the interface are held in all directions.
+* ``anteroposterior``: the interface held along y only, the muscle deformable, plus two pins
+  for the rigid-body modes this leaves (this project's first engine; kept to reproduce the
+  committed paper cohort, whose compressions slide the chest-wall layer sideways).
+* ``none``: only the user's held directions (``constraints``).
+
+Plates: `PlateSchedule` moves two parallel rigid plates (`fem.engine.contact.RigidPlate`) from
+their first contact to the compressed thickness, cranio-caudal (``cc``: normals +-z) or
+mediolateral-oblique (``mlo``: the plates turned about the anteroposterior axis y by
+``angle`` degrees, the lower plate, the detector, under the breast's lateral side).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from fem.contract.quality import boundary_faces, posterior_cut
+from fem.contract.trajectory import NodeFlag, Tissue, Trajectory
+from fem.engine.constraints import HeldDirections
+
+AP_AXIS = 1  #: anteroposterior axis (y, RAS+)
+CHEST_WALLS = ("sliding", "tied", "anteroposterior", "none")
+VIEWS = ("cc", "mlo")
+AXIS_LETTERS = {"x": 0, "y": 1, "z": 2}
+
+
+def chest_wall_nodes(traj: Trajectory) -> NDArray[np.int64]:
+    """The breast's nodes on the chest wall: the muscle/breast interface (``MUSCLE_INTERFACE``
+    nodes), or for a breast without muscle elements or such nodes the nodes of its flat
+    posterior cut face (`fem.contract.quality.posterior_cut`), where a segmentation cropped at
+    the chest wall ends."""
+    interface = traj.flagged(NodeFlag.MUSCLE_INTERFACE)
+    if interface.size or (traj.tissue == Tissue.MUSCLE).any():
+        return interface
+    faces, _ = boundary_faces(traj.points, traj.cells)
+    return np.unique(faces[posterior_cut(traj.points, faces)])
+
+
+def chest_wall_normals(points: NDArray) -> NDArray[np.float64]:
+    """Unit normals (M, 3) of the chest wall through ``points`` (M, 3), mm.
+
+    The wall is the least-squares quadric ``y = f(x, z)`` (a plane below six points) through
+    the points; its normal ``(f_x, -1, f_z) / |.|`` points posteriorly. The mesh's own
+    muscle/breast faces form a staircase at the element size whose normals scatter by up to
+    90 deg; the fitted wall is as smooth as a torso.
+    """
+    x, y, z = points.T
+    terms = [np.ones_like(x), x, z]
+    if len(points) >= 6:
+        terms += [x * x, x * z, z * z]
+    coef, *_ = np.linalg.lstsq(np.stack(terms, axis=1), y, rcond=None)
+    fx, fz = coef[1] + 0 * x, coef[2] + 0 * x
+    if len(coef) == 6:
+        fx, fz = fx + 2 * coef[3] * x + coef[4] * z, fz + coef[4] * x + 2 * coef[5] * z
+    normals = np.stack([fx, -np.ones_like(x), fz], axis=1)
+    return normals / np.linalg.norm(normals, axis=1, keepdims=True)
+
+
+def chest_wall(
+    traj: Trajectory, points: NDArray, mode: str = "sliding", translations: tuple[int, ...] = (0, 2)
+) -> HeldDirections:
+    """The held directions of the chest wall ``mode`` (module docstring) at ``points`` (N, 3),
+    the shape the step starts from. ``translations``: the axes of the ``anteroposterior``
+    mode's anchor pin (x and z for the unloaded state; x only under the plates, which hold z).
+
+    Raises
+    ------
+    ValueError
+        An unknown mode, or a mesh with no chest wall to hold.
+    """
+    if mode not in CHEST_WALLS:
+        raise ValueError(f"simulation.chest_wall must be one of {CHEST_WALLS}, got {mode!r}")
+    if mode == "none":
+        return HeldDirections.none()
+    wall = chest_wall_nodes(traj)
+    if wall.size < 3:
+        raise ValueError(
+            f"{traj.source}: no muscle/breast interface nodes (field 'node_flags') and no flat "
+            "posterior cut face: no chest wall to hold; give held nodes as "
+            "simulation.constraints with simulation.chest_wall=none"
+        )
+    muscle = np.unique(traj.cells[traj.tissue == Tissue.MUSCLE])
+    if mode == "anteroposterior":
+        p = points[wall]
+        anchor = wall[np.argmin(np.linalg.norm(p - p.mean(0), axis=1))]
+        far = wall[np.argmax(np.abs(p[:, 2] - points[anchor, 2]))]
+        return (
+            HeldDirections.axes(wall, (AP_AXIS,))
+            + HeldDirections.axes([anchor], translations)
+            + HeldDirections.axes([far], (0,))
+        )
+    if mode == "tied":
+        return HeldDirections.axes(np.union1d(wall, muscle))
+    sliding = wall
+    if muscle.size == 0:  # a flat cut, no muscle to hold it: only its rim slides
+        sliding = np.intersect1d(wall, traj.flagged(NodeFlag.SKIN))
+    tied = np.setdiff1d(np.union1d(wall, muscle), sliding)
+    return HeldDirections.axes(tied) + HeldDirections(sliding, chest_wall_normals(points[sliding]))
+
+
+def read_constraints(path: str | Path, n_nodes: int) -> HeldDirections:
+    """Held directions from a file: a text file with one node per line, ``<node> [axes]``
+    (axes any of ``x``, ``y``, ``z``, e.g. ``17 xz``; none: all three), or a ``.npy`` array
+    of node indices (all three axes held).
+
+    Raises
+    ------
+    ValueError
+        The file cannot be read, a line is malformed, a node is outside the mesh or an axis
+        letter unknown; the message names the file and the line.
+    """
+    path = Path(path)
+    rows: list[tuple[int, str]] = []
+    try:
+        if path.suffix == ".npy":
+            nodes = np.atleast_1d(np.load(path, allow_pickle=False))
+            if nodes.dtype.kind not in "iu":
+                raise ValueError(f"holds {nodes.dtype} values, not node indices")
+            rows = [(int(i), "xyz") for i in nodes.ravel()]
+        else:
+            for number, line in enumerate(path.read_text().splitlines(), 1):
+                words = line.split("#")[0].split()
+                if not words:
+                    continue
+                axes = words[1] if len(words) > 1 else "xyz"
+                if len(words) > 2 or not words[0].lstrip("-").isdigit() or set(axes) - set("xyz"):
+                    raise ValueError(f"line {number} {line!r} is not '<node> [axes from xyz]'")
+                rows.append((int(words[0]), axes))
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"{path}: cannot read held nodes (simulation.constraints): {exc}") from exc
+    if not rows:
+        raise ValueError(f"{path}: no held nodes (simulation.constraints)")
+    nodes = np.array([i for i, _ in rows])
+    if nodes.min() < 0 or nodes.max() >= n_nodes:
+        raise ValueError(
+            f"{path}: node indices must lie in [0, {n_nodes}) (simulation.constraints), got "
+            f"[{nodes.min()}, {nodes.max()}]"
+        )
+    held = HeldDirections.none()
+    for i, axes in rows:
+        held = held + HeldDirections.axes([i], sorted({AXIS_LETTERS[a] for a in axes}))
+    return held
+
+
+def lower_plate_normal(view: str, angle_deg: float, laterality: str | None, source: str) -> NDArray:
+    """Unit normal of the lower plate into the breast: +z (``cc``), or for ``mlo`` +z turned
+    about y by ``angle_deg`` towards the medial side (the detector lies inferolateral).
+
+    Raises
+    ------
+    ValueError
+        An unknown view, or ``mlo`` without the breast's laterality.
+    """
+    if view not in VIEWS:
+        raise ValueError(f"simulation.view must be one of {VIEWS}, got {view!r}")
+    if view == "cc":
+        return np.array([0.0, 0.0, 1.0])
+    if laterality not in ("L", "R"):
+        raise ValueError(
+            f"{source}: the mlo view needs the breast's side: metadata field 'laterality' must "
+            f"be 'L' or 'R', got {laterality!r}"
+        )
+    medial = -1.0 if laterality == "R" else 1.0  # RAS+: the right breast lies at +x
+    a = np.radians(angle_deg)
+    return np.array([medial * np.sin(a), 0.0, np.cos(a)])
+
+
+@dataclass(frozen=True)
+class PlateSchedule:
+    """Two parallel rigid plates and their straight motion over the load factor s in [0, 1].
+
+    Parameters
+    ----------
+    lower, upper : (3, 3) float
+        Each plate at s = 0 as rows origin (a point on its chest-side edge, mm), unit normal
+        into the breast, unit in-plane axis away from the chest (`RigidPlate`).
+    lower_travel, upper_travel : (3,) float
+        Displacement of each plate at s = 1, mm.
+    extent : (2,) float
+        Plate length along its axis and width across, mm (inf: unbounded).
+    """
+
+    lower: NDArray
+    upper: NDArray
+    lower_travel: NDArray = field(default_factory=lambda: np.zeros(3))
+    upper_travel: NDArray = field(default_factory=lambda: np.zeros(3))
+    extent: tuple[float, float] = (np.inf, np.inf)
+
+    def frames(self, s: float) -> NDArray[np.float64]:
+        """Both plates (2, 3, 3) at load factor ``s``."""
+        out = np.stack([self.lower, self.upper]).astype(float)
+        out[0, 0] += s * np.asarray(self.lower_travel)
+        out[1, 0] += s * np.asarray(self.upper_travel)
+        return out
+
+    def gap(self, s: float) -> float:
+        """Distance between the plates along the lower plate's normal at ``s``, mm."""
+        lower, upper = self.frames(s)
+        return float((upper[0] - lower[0]) @ lower[1])
+
+    def recorded(self, n_steps: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """The plates (T, 2, 3, 3) and the compression ratio ``1 - gap(s) / gap(0)`` (T,) at
+        the ``n_steps`` equally spaced recorded load factors ``k / n_steps``."""
+        s = np.arange(1, n_steps + 1) / n_steps
+        plates = np.stack([self.frames(v) for v in s])
+        return plates, np.array([1.0 - self.gap(v) / self.gap(0.0) for v in s])
+
+
+def skin_span(traj: Trajectory, start: NDArray, normal: NDArray) -> tuple[float, float]:
+    """Lowest and highest skin node of the shape ``start`` (N, 3) along ``normal``, mm: where
+    plates normal to it first touch the breast."""
+    height = start[traj.flagged(NodeFlag.SKIN)] @ normal
+    return float(height.min()), float(height.max())
+
+
+def plate_schedule(
+    traj: Trajectory,
+    start: NDArray,
+    compressed_thickness: float,
+    view: str = "cc",
+    angle: float = 45.0,
+) -> PlateSchedule:
+    """The plates that compress the shape ``start`` (N, 3) of ``traj``'s mesh to
+    ``compressed_thickness`` (mm) in the ``view``: the lower plate at the skin node lowest
+    along its normal (the inframammary fold for cc), the upper one starting at the highest (first
+    contact) and moving down to ``compressed_thickness`` above it; both reach back to the most
+    posterior chest-wall node.
+
+    Raises
+    ------
+    ValueError
+        The thickness is not positive or not below the breast's extent along the normal.
+    """
+    normal = lower_plate_normal(view, angle, traj.metadata.get("laterality"), traj.source)
+    bottom, top = skin_span(traj, start, normal)
+    if not 0 < compressed_thickness < top - bottom:
+        raise ValueError(
+            f"{traj.source}: compressed thickness {compressed_thickness:.1f} mm is not smaller "
+            f"than the breast's extent {top - bottom:.1f} mm along the plate normal "
+            "(or not positive)"
+        )
+    wall = chest_wall_nodes(traj)
+    edge = float(start[wall, AP_AXIS].max()) if wall.size else float(start[:, AP_AXIS].min())
+    axis = np.array([0.0, 1.0, 0.0])
+    lower = np.stack([edge * axis + bottom * normal, normal, axis])
+    upper = np.stack([edge * axis + top * normal, -normal, axis])
+    travel = -(top - bottom - compressed_thickness) * normal
+    return PlateSchedule(lower, upper, upper_travel=travel)
