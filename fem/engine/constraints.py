@@ -288,10 +288,12 @@ def equilibrium_path(
     settings: NewtonSettings,
     configure: Callable[[float], None] | None = None,
     max_cutbacks: int = 10,
+    prescribed: Callable[[float], NDArray] | None = None,
 ) -> NDArray[np.float64]:
     """Positions (len(record), N, 3) along a load ramp (`fem.engine.solver.load_ramp`) with the
     held coordinates of ``frames`` fixed at their values in ``x0`` (N, 3) and the plates of
-    ``model`` as bounds; ``load`` maps the load factor to the external force (3N,)."""
+    ``model`` as bounds; ``load`` maps the load factor to the external force (3N,);
+    ``prescribed`` maps it to positions (N, 3) whose held coordinates are imposed instead."""
     framed = FramedModel(model, frames)
     Y = load_ramp(
         framed,
@@ -302,5 +304,6 @@ def equilibrium_path(
         settings,
         max_cutbacks=max_cutbacks,
         configure=configure,
+        prescribed=None if prescribed is None else lambda s: frames.to_local(prescribed(s)),
     )
     return frames.to_global(Y)
