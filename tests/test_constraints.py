@@ -5,7 +5,7 @@ clear errors."""
 import numpy as np
 import pytest
 from conftest import assert_exact_derivatives
-from test_contact import MU, KAPPA, block, turn
+from test_contact import KAPPA, MU, block, turn
 
 from fem.engine.assembly import HyperelasticBody, Model
 from fem.engine.boundary import read_constraints

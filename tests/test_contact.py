@@ -45,9 +45,10 @@ def turn(angle_deg):
     return np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
 
 
-def plate(nodes, height, side, n, friction=0.0, edge=-1e9, R=np.eye(3)):
+def plate(nodes, height, side, n, friction=0.0, edge=-1e9, R=None):
     """A plate of the block's frame turned by ``R``: surface ``z = height`` (side +1: body
     above), covering ``y >= edge``."""
+    R = np.eye(3) if R is None else R
     normal = R @ np.array([0.0, 0.0, side])
     return RigidPlate(nodes, R @ np.array([0.0, edge, height]), normal, R[:, 1], n, friction)
 

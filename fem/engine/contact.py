@@ -100,6 +100,7 @@ class RigidPlate:
     normal_force: NDArray = field(init=False, repr=False)
     anchor: NDArray = field(init=False, repr=False)
     behind: NDArray | None = field(init=False, repr=False, default=None)
+    was_over: NDArray | None = field(init=False, repr=False, default=None)
 
     def __post_init__(self) -> None:
         self.origin = np.asarray(self.origin, float).copy()
@@ -128,14 +129,22 @@ class RigidPlate:
         return np.stack([self.origin, self.normal, self.axis])
 
     # -- normal contact: geometry and multipliers ---------------------------------------------
-    def covered(self, x: NDArray) -> NDArray[np.bool_]:
-        """Which candidate nodes the plate bounds, (M,) bool: those over the plate (in front of
-        its chest-side edge, within its extent) except those that were beyond its surface at
-        the last converged step (`behind`: they lie behind its edge, and sliding forward
-        they would meet the edge, not the surface)."""
+    def over(self, x: NDArray) -> NDArray[np.bool_]:
+        """Which candidate nodes lie over the plate: in front of its chest-side edge, within
+        its extent, (M,) bool."""
         d = x[self.nodes] - self.origin
         along, across = d @ self.axis, d @ self.tangents[0]
-        over = (along >= 0) & (along <= self.extent[0]) & (np.abs(across) <= self.extent[1] / 2)
+        return (along >= 0) & (along <= self.extent[0]) & (np.abs(across) <= self.extent[1] / 2)
+
+    def covered(self, x: NDArray) -> NDArray[np.bool_]:
+        """Which candidate nodes the plate bounds in a solve starting from ``x``, (M,) bool:
+        those over it now or at the last converged step (a solve's start is a prediction that
+        may overshoot the edge), except those that were beyond its surface then (`behind`:
+        they lie behind its edge, and sliding forward they would meet the edge, not the
+        surface)."""
+        over = self.over(x)
+        if self.was_over is not None:
+            over |= self.was_over
         return over if self.behind is None else over & ~self.behind
 
     def gap(self, x: NDArray) -> NDArray[np.float64]:
@@ -149,6 +158,7 @@ class RigidPlate:
         self.normal_force = np.asarray(normal_force, float)
         self.anchor = x[self.nodes] @ self.tangents.T
         self.behind = self.gap(x) < -BEHIND
+        self.was_over = self.over(x)
 
     # -- friction: energy, force, tangent ---------------------------------------------------
     def _slip(self, x: NDArray) -> tuple[NDArray, NDArray, NDArray]:
