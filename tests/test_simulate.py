@@ -86,11 +86,11 @@ def test_compression_between_plates(breast_mesh, unloaded, compressed):
     result, thickness = compressed
     assert result.positions.shape == (4, breast_mesh.n_nodes, 3)
     assert np.all(np.diff(result.compression_ratio) > 0)
-    lower, upper = result.plates[-1, 0, 1], result.plates[-1, 1, 1]
+    lower, upper = result.plates[-1, :, 0, 2]  # the plates' heights (CC: origin z)
     assert upper - lower == pytest.approx(thickness)
     x = result.positions[-1]
     skin = breast_mesh.flagged(NodeFlag.SKIN)
-    covered = x[skin, 1] >= result.plates[-1, 0, 0]
+    covered = x[skin, 1] >= result.plates[-1, 0, 0, 1]
     assert x[skin[covered], 2].min() > lower - 0.1 and x[skin[covered], 2].max() < upper + 0.1
     vol = signed_volume(x, breast_mesh.cells)
     assert vol.min() > 0

@@ -29,6 +29,7 @@ from typing import TypeVar
 import numpy as np
 from numpy.typing import NDArray
 
+from fem.contract.plates import upgrade_v1_plates
 from fem.contract.quality import boundary_faces, posterior_cut, signed_volume
 from fem.contract.trajectory import NodeFlag, Tissue, Trajectory
 from fem.engine.assembly import HyperelasticBody, Model
@@ -242,14 +243,16 @@ class PlateSchedule:
         return self.top - (self.top - self.bottom - self.thickness) * s
 
     def recorded(self, n_steps: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """Plate edges (T, 2, 2) as (y, z) of the lower and upper plate, and the compression
-        ratio (T,), at the ``n_steps`` equally spaced recorded load factors ``k / n_steps``."""
+        """Plate frames (T, 2, 3, 3) of the lower and upper plate (`fem.contract.plates`) and
+        the compression ratio (T,) at the ``n_steps`` equally spaced recorded load factors
+        ``k / n_steps``."""
         heights = self.height(np.arange(1, n_steps + 1) / n_steps)
         plates = np.zeros((n_steps, 2, 2))
         plates[:, :, 0] = self.edge
         plates[:, 0, 1] = self.bottom
         plates[:, 1, 1] = heights
-        return plates, 1.0 - (heights - self.bottom) / (self.top - self.bottom)
+        # schema version 2: plate frames; the engine rewrite (any plate pose) replaces this
+        return upgrade_v1_plates(plates), 1.0 - (heights - self.bottom) / (self.top - self.bottom)
 
 
 def plate_schedule(
