@@ -9,8 +9,11 @@ distance of its nodes from ``mu`` (one scale for all three axes, so shapes are n
 `Normalization` keeps both to map predictions back to millimetres.
 
 The input geometry of the unloaded-state step is the imaged mesh (``points``); that of the
-compression step is the unloaded shape (``unloaded[-1]``), the compression's stress-free
-reference, so a predicted unloaded state can feed the compression model.
+compression step is the unloaded shape (`Trajectory.reference_shape`: ``unloaded[-1]``, or
+``points`` when the unloaded-state step was skipped), the compression's stress-free
+reference, so a predicted unloaded state can feed the compression model. The compression's
+coordinates, plates and targets are expressed in the frame of the lower plate (a rotation,
+`Normalization.rotation`), so cranio-caudal and oblique compressions share one model.
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from fem.contract.plates import NORMAL, ORIGIN, plate_basis
 from fem.contract.quality import signed_volume
 from fem.contract.trajectory import NodeFlag, Tissue, Trajectory
 
@@ -110,32 +114,82 @@ class FeatureSchema:
 
 @dataclass(frozen=True)
 class Normalization:
-    """Per-breast z-score of coordinates (equation 1): ``(v - mean) / scale``.
+    """Per-breast z-score of coordinates (equation 1) in a frame: ``(v @ rotation - mean) / scale``.
+
+    The compression's coordinates are expressed in the lower plate's frame
+    (`fem.contract.plates.plate_basis`), so that a cranio-caudal and a mediolateral-oblique
+    compression look alike to a model; ``rotation`` turns patient-frame coordinates into that
+    frame (``v' = rotation.T @ v``) before the z-score, and `invert` turns predictions back
+    into the patient frame. ``None`` is the identity (the unloaded-state step, cranio-caudal
+    plates, and every normalisation stored before rotations existed): no arithmetic is done,
+    so those features are bit-identical to the unrotated ones.
 
     Attributes
     ----------
     mean : (3,) float64
-        Mean node position of the input geometry, mm.
+        Mean node position of the input geometry in the frame, mm.
     scale : float
         Root-mean-square distance of the nodes from ``mean``, mm.
+    rotation : (3, 3) float64 or None
+        Columns: the frame's axes in the patient frame; ``None``: the patient frame itself.
     """
 
     mean: NDArray
     scale: float
+    rotation: NDArray | None = None
 
     @classmethod
-    def of(cls, points: NDArray) -> Normalization:
-        """The normalisation of a geometry ``points`` (N, 3), mm."""
+    def of(cls, points: NDArray, rotation: NDArray | None = None) -> Normalization:
+        """The normalisation of a geometry ``points`` (N, 3), mm, in the frame ``rotation``
+        (3, 3) (columns: the frame's axes; an exact identity is stored as ``None``)."""
+        if rotation is not None:
+            rotation = np.asarray(rotation, np.float64)
+            if np.array_equal(rotation, np.eye(3)):
+                rotation = None
+        points = points if rotation is None else points @ rotation
         mean = points.mean(axis=0)
-        return cls(mean, float(np.sqrt(((points - mean) ** 2).sum(axis=1).mean())))
+        return cls(mean, float(np.sqrt(((points - mean) ** 2).sum(axis=1).mean())), rotation)
+
+    def to_frame(self, v: NDArray) -> NDArray:
+        """Patient-frame coordinates ``v`` (..., 3) in the normalisation's frame, mm."""
+        return v if self.rotation is None else v @ self.rotation
+
+    def from_frame(self, v: NDArray) -> NDArray:
+        """Frame coordinates ``v`` (..., 3) back in the patient frame, mm."""
+        return v if self.rotation is None else v @ self.rotation.T
+
+    def _check_axes(self, axes: slice | list[int]) -> None:
+        if self.rotation is not None and axes != slice(None):
+            raise ValueError("a rotated normalisation applies to whole (x, y, z) coordinates")
 
     def apply(self, v: NDArray, axes: slice | list[int] = slice(None)) -> NDArray:
-        """Normalise coordinates ``v`` (..., k) whose last axis holds the axes ``axes``."""
-        return (v - self.mean[axes]) / self.scale
+        """Normalise patient-frame coordinates ``v`` (..., k) whose last axis holds the axes
+        ``axes`` (all three when the normalisation has a rotation)."""
+        self._check_axes(axes)
+        return (self.to_frame(v) - self.mean[axes]) / self.scale
 
     def invert(self, v: NDArray, axes: slice | list[int] = slice(None)) -> NDArray:
-        """Millimetres of normalised coordinates ``v`` (..., k)."""
-        return v * self.scale + self.mean[axes]
+        """Patient-frame millimetres of normalised coordinates ``v`` (..., k)."""
+        self._check_axes(axes)
+        return self.from_frame(v * self.scale + self.mean[axes])
+
+    def to_json(self) -> dict:
+        """The JSON-serialisable fields (``rotation`` only when there is one)."""
+        out = {"mean": np.asarray(self.mean).tolist(), "scale": float(self.scale)}
+        if self.rotation is not None:
+            out["rotation"] = self.rotation.tolist()
+        return out
+
+    @classmethod
+    def from_json(cls, d: dict) -> Normalization:
+        """Of `to_json`'s fields; without ``rotation`` (every file written before rotations
+        existed) the identity."""
+        rotation = d.get("rotation")
+        return cls(
+            np.asarray(d["mean"], np.float64),
+            float(d["scale"]),
+            None if rotation is None else np.asarray(rotation, np.float64).reshape(3, 3),
+        )
 
 
 def tissue_descriptors(traj: Trajectory) -> NDArray[np.float64]:
@@ -192,20 +246,62 @@ def unloaded_features(
     return features, norm.apply(traj.unloaded).astype(np.float32), norm
 
 
+def facing_plate(traj: Trajectory, normal: NDArray) -> NDArray[np.bool_]:
+    """Skin nodes that can meet a plate with the unit normal ``normal`` (3,): those whose
+    area-weighted skin normal (imaged geometry) points against it, ``n . normal < 0``.
+
+    For the upper cranio-caudal plate (normal (0, 0, -1)) this is the rule of
+    `fem.breasts.mesh.annotate`'s ``NodeFlag.UPPER_CONTACT`` (a positive z component),
+    evaluated in the same order, so the same bits. Shape (N,).
+    """
+    p = traj.points[traj.skin]
+    area_normal = 0.5 * np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    vertex_normal = np.zeros((traj.n_nodes, 3))
+    for k in range(3):
+        np.add.at(vertex_normal, traj.skin[:, k], area_normal)
+    skin_nodes = (traj.node_flags & NodeFlag.SKIN) > 0
+    return skin_nodes & (vertex_normal @ np.asarray(normal, np.float64) < 0)
+
+
+#: Normal of the upper plate of a cranio-caudal compression.
+CC_UPPER_NORMAL = np.array([0.0, 0.0, -1.0])
+
+
+def upper_contact(traj: Trajectory, plates: NDArray) -> NDArray[np.bool_]:
+    """Feature 17: the nodes that can meet the upper plate ``plates[0, 1]`` (T, 2, 3, 3).
+
+    Cranio-caudal plates (upper normal exactly (0, 0, -1)) take the stored
+    ``NodeFlag.UPPER_CONTACT``, which `fem.breasts.mesh.annotate` computed by the rule of
+    `facing_plate` for that normal; other plates (an oblique view) evaluate the rule against
+    their upper plate's normal. Shape (N,).
+    """
+    normal = plates[0, 1, NORMAL]
+    if np.array_equal(normal, CC_UPPER_NORMAL):
+        return (traj.node_flags & NodeFlag.UPPER_CONTACT) > 0
+    return facing_plate(traj, normal)
+
+
 def compression_inputs(
     traj: Trajectory, unloaded: NDArray, plates: NDArray, compression_ratio: NDArray
 ) -> tuple[NDArray[np.float32], Normalization]:
     """Compression features of a breast mesh from its unloaded shape and the plates' schedule
-    (simulated, or predicted and placed by `fem.engine.simulation.plate_schedule`).
+    (simulated, or predicted and placed by `fem.engine.boundary.plate_schedule`).
+
+    Coordinates are expressed in the frame of the lower plate at the first step
+    (`fem.contract.plates.plate_basis` of ``plates[0, 0]``): x' along its chest-side edge,
+    y' away from the chest, z' along its normal. For cranio-caudal plates that frame is the
+    patient frame and the features are those of the paper; an oblique compression gets the
+    features its cranio-caudal counterpart would.
 
     Parameters
     ----------
     traj : Trajectory
         The mesh: cells, tissues, node flags and ``metadata["laterality"]``.
     unloaded : (N, 3)
-        The unloaded shape, the compression's input geometry, mm.
-    plates : (T, 2, 2)
-        (y, z) of the lower and upper plate's chest-side edge per recorded step, mm.
+        The compression's input geometry (`Trajectory.reference_shape`), mm.
+    plates : (T, 2, 3, 3)
+        Frames (origin, normal, axis) of the lower and upper plate per recorded step,
+        mm (`fem.contract.plates`).
     compression_ratio : (T,)
         Compression ratio per recorded step.
 
@@ -214,7 +310,8 @@ def compression_inputs(
     features : (T, N, 22) float32
         `COMPRESSION_FEATURES` per recorded step and node.
     normalization : Normalization
-        Of the unloaded shape.
+        Of the unloaded shape in the lower plate's frame; its `Normalization.invert` gives
+        patient-frame millimetres.
 
     Raises
     ------
@@ -227,23 +324,25 @@ def compression_inputs(
         raise ValueError(
             f"{source}: metadata field 'laterality' must be 'L' or 'R', got {laterality!r}"
         )
-    norm = Normalization.of(unloaded)
+    plates = np.asarray(plates, np.float64)
+    norm = Normalization.of(unloaded, plate_basis(plates[0, 0]))
     n_steps = len(plates)
     base = _base_features(unloaded, n_steps, tissue_descriptors(traj), norm)
-    lower, upper = plates[:, 0, 1], plates[:, 1, 1]
+    origins = norm.to_frame(plates[:, :, ORIGIN])  # (T, 2, 3) mm in the lower plate's frame
+    lower, upper = origins[:, 0, 2], origins[:, 1, 2]  # heights along the lower plate's normal
     first_contact = lower + (upper - lower) / (1.0 - compression_ratio)  # upper at CR 0
     code = traj.node_tissue_code
     per_step = np.stack(
         [
             (first_contact - upper) / norm.scale,  # 12: plate travel, normalised
-            *norm.apply(plates[:, 0], [1, 2]).T,  # 13-14: lower edge (y, z)
-            *norm.apply(plates[:, 1], [1, 2]).T,  # 15-16: upper edge (y, z)
+            *norm.apply(plates[:, 0, ORIGIN])[:, 1:].T,  # 13-14: lower edge (y', z')
+            *norm.apply(plates[:, 1, ORIGIN])[:, 1:].T,  # 15-16: upper edge (y', z')
         ],
         axis=1,
     )  # (T, 5)
     per_node = np.stack(
         [
-            (traj.node_flags & NodeFlag.UPPER_CONTACT) > 0,  # 17
+            upper_contact(traj, plates),  # 17
             (traj.node_flags & NodeFlag.SKIN) > 0,  # 18
             (code >> 2) & 1,  # 19: gland bit
             (code >> 1) & 1,  # 20: fat bit
@@ -273,19 +372,21 @@ def compression_features(
     features : (T2, N, 22) float32
         `COMPRESSION_FEATURES` per step and node.
     targets : (T2, N, 3) float32
-        Normalised node coordinates per step.
+        Normalised node coordinates per step, in the lower plate's frame (`compression_inputs`).
     normalization : Normalization
-        Of the unloaded shape (the compression's input geometry).
+        Of the compression's input geometry (`Trajectory.reference_shape`: the unloaded
+        shape, or the imaged one when the unloaded-state step was skipped);
+        ``normalization.invert(targets)`` gives patient-frame millimetres.
 
     Raises
     ------
     ValueError
-        The breast has no unloaded state, or its metadata no laterality.
+        The breast has no compression steps, or its metadata no laterality.
     """
     source = traj.source
-    if not len(traj.unloaded) or not len(traj.compressed):
-        raise ValueError(f"{source}: not simulated (fields 'unloaded'/'compressed' are empty)")
+    if not len(traj.compressed):
+        raise ValueError(f"{source}: not simulated (field 'compressed' is empty)")
     features, norm = compression_inputs(
-        traj, traj.unloaded[-1], traj.plates, traj.compression_ratio
+        traj, traj.reference_shape, traj.plates, traj.compression_ratio
     )
     return features, norm.apply(traj.compressed).astype(np.float32), norm

@@ -69,7 +69,7 @@ class Breast:
 
     def normalization(self) -> Normalization:
         meta = json.loads(self.stem.with_suffix(".json").read_text())
-        return Normalization(np.asarray(meta["mean"]), float(meta["scale"]))
+        return Normalization.from_json(meta)
 
 
 def cache_breast(source: Path, stem: Path, step: str) -> None:
@@ -78,8 +78,7 @@ def cache_breast(source: Path, stem: Path, step: str) -> None:
     traj.metadata.setdefault("source", str(source))
     features, targets, norm = STEPS[step](traj)
     meta = {
-        "mean": norm.mean.tolist(),
-        "scale": norm.scale,
+        **norm.to_json(),
         "patient": int(traj.metadata.get("patient", -1)),
         "site": str(traj.metadata.get("site", "")),
         "n_nodes": traj.n_nodes,

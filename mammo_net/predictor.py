@@ -7,7 +7,7 @@ registration loops.
     shapes.compressed  # (K, T2, N, 3) mm: every recorded step for each thickness
 
 The unloaded-state model maps the imaged mesh to the unloaded shape; the plates are placed on
-that shape as the FE places them (`fem.engine.simulation.plate_schedule`) for each compressed thickness,
+that shape as the FE places them (`fem.engine.boundary.plate_schedule`) for each compressed thickness,
 and the compression model maps the shape and plates to every recorded compression step. All
 thicknesses go through the compression model in one batched call.
 """
@@ -31,9 +31,10 @@ from fem.breasts.figures import shapes_sections_png
 from fem.breasts.io import write_mesh
 from fem.contract.atomic import atomic_path
 from fem.contract.landmarks import SOURCE_TO_IMAGE_MM, carry, locate, project_cc
+from fem.contract.plates import ORIGIN
 from fem.contract.timeseries import write_time_series
 from fem.contract.trajectory import Trajectory, reading_file
-from fem.engine.simulation import plate_schedule
+from fem.engine.boundary import plate_schedule
 from mammo_net import baselines
 from mammo_net.inference import network_predictor, save_predictions
 from mammo_net.sequence_trees import from_forest, from_xgboost, sequence_predictor
@@ -108,8 +109,9 @@ class BreastShapes:
         Every recorded step of the unloaded-state estimate (the last one is the unloaded shape).
     compressed : (K, T2, N, 3)
         Every recorded compression step, for each of the K requested thicknesses.
-    plates : (K, T2, 2, 2)
-        (y, z) of the lower and upper plate's chest-side edge per step, mm.
+    plates : (K, T2, 2, 3, 3)
+        Frames (origin, normal, axis) of the lower and upper plate per step
+        (`fem.contract.plates`), mm.
     compression_ratio : (K, T2)
         Compression ratio per step.
     thickness : (K,)
@@ -152,14 +154,17 @@ def predict_breast(
     shape = steps[-1].astype(np.float64)
     n_steps = compression.schema.n_steps
     schedules = [plate_schedule(traj, shape, float(t)).recorded(n_steps) for t in thicknesses]
-    plates = np.stack([p for p, _ in schedules])  # (K, T2, 2, 2)
+    plates = np.stack([p for p, _ in schedules])  # (K, T2, 2, 3, 3)
     ratio = np.stack([r for _, r in schedules])  # (K, T2)
-    batch = []
-    for k in range(len(schedules)):  # the same shape, so the same normalisation, for every k
+    batch, norms = [], []
+    for k in range(len(schedules)):
         features, norm = compression_inputs(traj, shape, plates[k], ratio[k])  # (T2, N, 22)
         batch.append(features.transpose(1, 0, 2))
-    out = norm.invert(compression.predict(np.concatenate(batch)))  # (K N, T2, 3), one call
-    compressed = out.reshape(len(batch), traj.n_nodes, n_steps, 3).transpose(0, 2, 1, 3)
+        norms.append(norm)  # each in its lower plate's frame
+    out = compression.predict(np.concatenate(batch))  # (K N, T2, 3), one call
+    out = out.reshape(len(batch), traj.n_nodes, n_steps, 3)
+    compressed = np.stack([n.invert(o) for n, o in zip(norms, out, strict=True)])
+    compressed = compressed.transpose(0, 2, 1, 3)
     return BreastShapes(
         steps.astype(np.float32),
         compressed.astype(np.float32),
@@ -386,9 +391,9 @@ def map_landmarks(
     rows = []
     for k, t in enumerate(shapes.thickness):
         final = shapes.compressed[k, -1]
-        plates = shapes.plates[k, -1]  # lower plate (y edge, z), upper plate
-        foot = (float(final[:, 0].mean()), float(plates[0, 0]))
-        detector = project_cc(compressed[k], float(plates[0, 1]), foot, source_to_image)
+        lower = shapes.plates[k, -1, 0, ORIGIN]  # the lower plate's chest-side edge (x, y, z)
+        foot = (float(final[:, 0].mean()), float(lower[1]))
+        detector = project_cc(compressed[k], float(lower[2]), foot, source_to_image)
         for q, name in enumerate(names):
             rows.append(
                 {"name": name, "thickness_mm": float(t)}

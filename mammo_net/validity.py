@@ -15,6 +15,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from fem.contract.plates import covered, penetration
 from fem.contract.quality import signed_volume
 from fem.contract.trajectory import NodeFlag, Trajectory
 from mammo_net.predictor import BreastShapes
@@ -51,13 +52,22 @@ def plate_penetration(points: NDArray, skin: NDArray, plates: NDArray) -> NDArra
         Node positions, mm.
     skin : (S,) int
         Skin node indices.
-    plates : (2, 2) float
-        (y, z) of the lower and the upper plate's chest-side edge; a plate covers ``y >= edge``.
+    plates : (2, 3, 3) float
+        Frames (origin, normal, axis) of the lower and the upper plate
+        (`fem.contract.plates`): a plate covers the nodes in front of its chest-side edge.
+
+    Returns
+    -------
+    (S,) float64
+        The deepest `fem.contract.plates.penetration` of each node into a plate covering it,
+        0 when it lies in front of both plates or is covered by neither.
     """
     p = points[skin]
-    covered = p[:, 1] >= plates[0, 0]
-    depth = np.maximum(plates[0, 1] - p[:, 2], p[:, 2] - plates[1, 1])
-    return np.where(covered, np.maximum(depth, 0.0), 0.0)
+    depth = np.zeros(len(p))
+    for plate in plates:
+        inside = np.where(covered(p, plate), penetration(p, plate), 0.0)
+        depth = np.maximum(depth, inside)
+    return depth
 
 
 def check_shape(
@@ -69,7 +79,8 @@ def check_shape(
     tolerance_mm: float = 0.5,
 ) -> ShapeCheck:
     """Measure `ShapeCheck` of the shape ``points`` (N, 3) of a mesh whose stress-free
-    shape is ``reference`` (N, 3); plate penetration when ``plates`` (2, 2) is given."""
+    shape is ``reference`` (N, 3); plate penetration when ``plates`` (2, 3, 3), the frames of
+    the lower and the upper plate, is given."""
     volume = signed_volume(points, cells)
     change = float(volume.sum() / signed_volume(reference, cells).sum() - 1.0)
     if plates is None:

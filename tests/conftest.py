@@ -7,6 +7,7 @@ import pytest
 
 from fem.breasts.mesh import Mesher
 from fem.breasts.phantom import LabelVolume, PhantomGenerator
+from fem.contract.plates import cc_plates
 from fem.contract.trajectory import Tissue, Trajectory
 
 
@@ -66,9 +67,7 @@ def tiny_trajectory(laterality: str = "R", **metadata) -> Trajectory:
     compressed = np.stack([rest * [1, 1, 1 - 0.1 * s] for s in (1, 2, 3)])  # (3, 5, 3)
     # Plates: lower at z = -2, upper from z = 1 (first contact) down by 0.3 / 0.6 / 0.9.
     upper = 1.0 - 0.3 * np.arange(1, 4)
-    plates = np.zeros((3, 2, 2))
-    plates[:, :, 0] = -1.0
-    plates[:, 0, 1], plates[:, 1, 1] = -2.0, upper
+    plates = cc_plates([-1.0, -2.0], np.stack([np.full(3, -1.0), upper], axis=1))  # (y, z)
     return Trajectory(
         points=points,
         cells=cells,

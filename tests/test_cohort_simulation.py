@@ -34,12 +34,12 @@ def test_trajectories_and_report(simulated):
     assert not [n for n in names if n.startswith(".")]  # no temporary files left
     traj = Trajectory.load(out / "trajectories" / "P0000_L.npz")
     assert traj.unloaded.shape == (3, traj.n_nodes, 3)
-    assert traj.compressed.shape == (4, traj.n_nodes, 3) and traj.plates.shape == (4, 2, 2)
+    assert traj.compressed.shape == (4, traj.n_nodes, 3) and traj.plates.shape == (4, 2, 3, 3)
     # The target ratio is reached on the unloaded shape's cranio-caudal extent.
     assert traj.compression_ratio[-1] == pytest.approx(traj.metadata["target_compression_ratio"])
     skin = traj.flagged(NodeFlag.SKIN)
-    lower, upper = traj.plates[-1, :, 1]
-    covered = traj.compressed[-1][skin, 1] >= traj.plates[-1, 0, 0]
+    lower, upper = traj.plates[-1, :, 0, 2]  # the plates' heights (CC: origin z)
+    covered = traj.compressed[-1][skin, 1] >= traj.plates[-1, 0, 0, 1]
     z = traj.compressed[-1][skin[covered], 2]
     assert z.min() >= lower - 1e-9 and z.max() <= upper + 1e-9  # nothing inside a plate
     extent = np.ptp(traj.unloaded[-1][skin, 2])

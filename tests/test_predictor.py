@@ -18,7 +18,7 @@ from datamodules.features import FeatureSchema, compression_features, unloaded_f
 from datamodules.trajectories import TrajectoryDataModule
 from fem.breasts.io import write_mesh
 from fem.contract.trajectory import NodeFlag
-from fem.engine.simulation import plate_schedule
+from fem.engine.boundary import plate_schedule
 from mammo_net import baselines
 from mammo_net.module import SurrogateModule
 from mammo_net.predictor import load_surrogate, predict_breast
@@ -81,7 +81,7 @@ def test_predictions_use_the_training_features(models):
     features, _, norm = unloaded_features(traj)
     expected = norm.invert(unloaded.predict(features.transpose(1, 0, 2))).transpose(1, 0, 2)
     np.testing.assert_allclose(shapes.unloaded, expected, atol=1e-5)
-    assert shapes.compressed.shape == (3, 3, 5, 3) and shapes.plates.shape == (3, 3, 2, 2)
+    assert shapes.compressed.shape == (3, 3, 5, 3) and shapes.plates.shape == (3, 3, 2, 3, 3)
     one = predict_breast(traj, unloaded, compression, [0.9])
     np.testing.assert_allclose(shapes.compressed[2], one.compressed[0], atol=1e-5)
     assert shapes.compression_ratio[:, -1].argsort().tolist() == [2, 1, 0]  # thinner: more

@@ -2,6 +2,7 @@ import meshio
 import numpy as np
 import pytest
 
+from fem.contract.plates import cc_plates
 from fem.contract.timeseries import write_time_series
 from fem.contract.trajectory import Trajectory
 
@@ -24,7 +25,7 @@ def _tiny(t1: int, t2: int) -> Trajectory:
         skin=np.array([[0, 1, 2]]),
         unloaded=unloaded,
         compressed=compressed,
-        plates=np.zeros((t2, 2, 2)),
+        plates=cc_plates(np.zeros((t2, 2)), np.ones((t2, 2))),
         compression_ratio=np.linspace(0.1, 0.1 * t2, t2),
     )
 

@@ -3,8 +3,15 @@
 import numpy as np
 import pytest
 
+from fem.contract.plates import cc_plates, rotate_plates
 from mammo_net.predictor import BreastShapes
-from mammo_net.validity import PhysicalChecks, PhysicallyImpossible, check_shape, check_shapes
+from mammo_net.validity import (
+    PhysicalChecks,
+    PhysicallyImpossible,
+    check_shape,
+    check_shapes,
+    plate_penetration,
+)
 
 #: Two tetrahedra sharing the face (1, 2, 3): a unit cube's corner and its mirror.
 POINTS = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1]], float)
@@ -23,21 +30,33 @@ def test_a_pushed_through_node_inverts_its_element():
 
 def test_volume_change_and_plate_penetration_in_closed_form():
     squashed = POINTS * [1.0, 1.0, 0.5]  # half the height: half the volume
-    plates = np.array([[-1.0, 0.0], [-1.0, 0.4]])  # upper plate at z = 0.4, covering all y
+    plates = cc_plates([-1.0, 0.0], [-1.0, 0.4])  # upper plate at z = 0.4, covering all y
     c = check_shape(CELLS, POINTS, squashed, skin=np.arange(5), plates=plates, tolerance_mm=0.05)
     assert c.volume_change == pytest.approx(-0.5)
     assert c.nodes_beyond_plates == 2  # z = 0.5 at nodes 3 and 4
     assert c.max_plate_penetration_mm == pytest.approx(0.1)
     # A plate that reaches back only to y = 2 covers no node.
-    behind = np.array([[2.0, 0.0], [2.0, 0.4]])
+    behind = cc_plates([2.0, 0.0], [2.0, 0.4])
     assert check_shape(CELLS, POINTS, squashed, np.arange(5), behind).nodes_beyond_plates == 0
+
+
+def test_plate_penetration_of_oblique_plates():
+    """Shape and plates turned by 45 degrees about y (an MLO view): the same depths."""
+    a = np.radians(45.0)
+    R = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+    squashed = POINTS * [1.0, 1.0, 0.5]
+    plates = cc_plates([-1.0, 0.05], [0.5, 0.4])  # the upper plate covers y >= 0.5 only
+    cc = plate_penetration(squashed, np.arange(5), plates)
+    np.testing.assert_allclose(cc, [0.05, 0.05, 0.05, 0, 0.1])  # node 3: in front of the upper
+    mlo = plate_penetration(squashed @ R.T, np.arange(5), rotate_plates(plates, R))
+    np.testing.assert_allclose(mlo, cc, atol=1e-12)
 
 
 def _shapes(final):
     return BreastShapes(
         unloaded=POINTS[None].astype(np.float32),
         compressed=final[None, None].astype(np.float32),
-        plates=np.array([[[[-1.0, -1.0], [-1.0, 2.0]]]]),
+        plates=cc_plates([-1.0, -1.0], [-1.0, 2.0])[None, None],
         compression_ratio=np.array([[0.1]]),
         thickness=np.array([3.0]),
     )

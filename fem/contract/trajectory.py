@@ -27,8 +27,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from fem.contract.atomic import atomic_path
+from fem.contract.plates import check_plates, upgrade_v1_plates
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
+
+#: The schema versions `Trajectory.load` reads (older ones are upgraded on read).
+READABLE_VERSIONS = (1, 2)
 
 #: Leading bytes of a NumPy ``.npz`` archive (a ZIP file; the second: an empty one).
 NPZ_MAGIC = (b"PK\x03\x04", b"PK\x05\x06")
@@ -102,9 +106,11 @@ class Trajectory:
         Node positions at each recorded step of the unloaded-state step, mm; T1 = 0 before simulation.
     compressed : (T2, N, 3) float64
         Node positions at each recorded compression step, mm; T2 = 0 before simulation.
-    plates : (T2, 2, 2) float64
-        (y, z) of the chest-side edge of the lower (index 0) and upper (index 1) plate per
-        compression step, mm (the paper's features 13-16).
+    plates : (T2, 2, 3, 3) float64
+        Frame of the lower (index 0: fixed, detector) and upper (index 1: moving, paddle)
+        plate per compression step, rows ``(origin, normal, axis)``: a point of the plate
+        surface on its chest-side edge (mm), the unit normal pointing into the breast, the
+        unit in-plane direction away from the chest (`fem.contract.plates`).
     compression_ratio : (T2,) float64
         Compression ratio at each compression step, 1 - plate gap / uncompressed thickness.
     metadata : dict
@@ -131,7 +137,11 @@ class Trajectory:
         if self.compressed is None:
             self.compressed = _empty_steps(n)
         if self.plates is None:
-            self.plates = np.zeros((len(self.compressed), 2, 2))
+            if len(self.compressed):
+                raise ValueError(
+                    f"{self.source}: field 'plates' is required when 'compressed' holds steps"
+                )
+            self.plates = np.zeros((0, 2, 3, 3))
         if self.compression_ratio is None:
             self.compression_ratio = np.zeros(len(self.compressed))
         self.validate()
@@ -143,6 +153,13 @@ class Trajectory:
     @property
     def n_cells(self) -> int:
         return len(self.cells)
+
+    @property
+    def reference_shape(self) -> NDArray[np.float64]:
+        """(N, 3) the compression's input geometry, mm: the unloaded shape ``unloaded[-1]``
+        when the unloaded-state step was simulated (T1 > 0), else the imaged ``points`` (the
+        unloaded-state step was skipped; the compression starts from the imaged shape)."""
+        return self.unloaded[-1] if len(self.unloaded) else self.points
 
     @property
     def source(self) -> str:
@@ -179,10 +196,7 @@ class Trajectory:
                     f"{source}: field '{name}' must have shape (T, {n}, 3), got {arr.shape}"
                 )
         t2 = len(self.compressed)
-        if self.plates.shape != (t2, 2, 2):
-            raise ValueError(
-                f"{source}: field 'plates' must have shape ({t2}, 2, 2), got {self.plates.shape}"
-            )
+        check_plates(self.plates, t2, source)
         if self.compression_ratio.shape != (t2,):
             raise ValueError(
                 f"{source}: field 'compression_ratio' must have shape ({t2},), "
@@ -227,9 +241,11 @@ class Trajectory:
                 f"(fields: {', '.join(sorted(data)) or 'none'})"
             )
         version = data["schema_version"]
-        if version.shape != () or version.dtype.kind not in "iu" or version != SCHEMA_VERSION:
+        known = version.shape == () and version.dtype.kind in "iu"
+        if not known or int(version) not in READABLE_VERSIONS:
             raise ValueError(
-                f"{path}: field 'schema_version' is {version}, this code reads {SCHEMA_VERSION}"
+                f"{path}: field 'schema_version' is {version}, this code reads "
+                f"{' and '.join(map(str, READABLE_VERSIONS))} (writes {SCHEMA_VERSION})"
             )
         missing = [f.name for f in fields(cls) if f.name not in data]
         if missing:
@@ -238,6 +254,8 @@ class Trajectory:
         for f in fields(cls):
             if f.name != "metadata":
                 setattr(traj, f.name, _numeric_field(data[f.name], f.name, path))
+        if version == 1:
+            traj.plates = _upgrade_v1_plates(traj.plates, path)
         traj.metadata = _metadata_field(data["metadata"], path)
         traj.validate(str(path))
         return traj
@@ -250,6 +268,16 @@ def _numeric_field(array: NDArray, name: str, path: Path) -> NDArray:
         expected = "integers" if kinds == "iu" else "numbers"
         raise ValueError(f"{path}: field '{name}' holds {array.dtype} values, not {expected}")
     return array
+
+
+def _upgrade_v1_plates(plates: NDArray, path: Path) -> NDArray[np.float64]:
+    """Version 1's (T2, 2, 2) (y, z) plate edges of the CC plates as version 2's frames."""
+    if plates.ndim != 3 or plates.shape[1:] != (2, 2):
+        raise ValueError(
+            f"{path}: field 'plates' of a version-1 file must have shape (T2, 2, 2), "
+            f"got {plates.shape}"
+        )
+    return upgrade_v1_plates(plates)
 
 
 def _metadata_field(array: NDArray, path: Path) -> dict[str, Any]:
