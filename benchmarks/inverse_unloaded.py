@@ -23,6 +23,8 @@ from pathlib import Path
 import numpy as np
 
 from fem.contract.trajectory import Trajectory
+from fem.engine.boundary import chest_wall
+from fem.engine.constraints import NodeFrames
 from fem.engine.inverse import (
     InverseError,
     forward,
@@ -30,7 +32,7 @@ from fem.engine.inverse import (
     max_node_distance,
     prone_gravity,
 )
-from fem.engine.simulation import PAPER_MATERIALS, chest_wall_free_dofs, unloaded_state
+from fem.engine.simulation import PAPER_MATERIALS, unloaded_state
 from fem.engine.solver import SolverError
 
 COHORT = Path("data/cohort/full")
@@ -60,8 +62,8 @@ def compare(path: Path, tolerance: float, n_steps: int) -> dict[str, float | int
     t1 = time.perf_counter()
     result = inverse_unloaded_state(traj, PAPER_MATERIALS, tolerance=tolerance)
     t2 = time.perf_counter()
-    free = chest_wall_free_dofs(traj).ravel()
-    reloaded = forward(traj, simple, free, PAPER_MATERIALS, 10, prone_gravity())
+    frames = NodeFrames.build(traj.n_nodes, chest_wall(traj, traj.points))
+    reloaded = forward(traj, simple, frames, PAPER_MATERIALS, 10, prone_gravity())
     distance = np.linalg.norm(simple - result.points, axis=1)
     return {
         "breast": path.stem,

@@ -17,7 +17,7 @@ import predict
 from fem import CONFIG_DIR
 from fem.contract.quality import signed_volume
 from fem.contract.trajectory import Trajectory
-from fem.engine.simulation import chest_wall_nodes
+from fem.engine.boundary import chest_wall_nodes
 from fem.mesh_breast import mesh_breast
 from fem.simulate import simulate_file
 

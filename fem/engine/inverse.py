@@ -207,6 +207,7 @@ def inverse_unloaded_state(
     relaxation: str = "aitken",
     force_density: float = GRAVITY_FORCE_DENSITY,
     settings: NewtonSettings = DEFAULT_NEWTON,
+    chest: str = "sliding",
 ) -> InverseResult:
     """The unloaded shape that prone gravity deforms into the imaged shape (backward displacement).
 
@@ -226,6 +227,8 @@ def inverse_unloaded_state(
         Aitken's dynamic relaxation of the update, or the plain fixed point (``omega = 1``).
     force_density : float
         Magnitude of the prone body force ``rho g`` along +y, Pa/mm.
+    chest : str
+        The chest-wall condition (`fem.engine.boundary.chest_wall`).
 
     Returns
     -------
@@ -245,7 +248,7 @@ def inverse_unloaded_state(
     target = np.asarray(traj.points, float)
     # One chest wall for all iterates (`fem.engine.boundary.chest_wall`, sliding), its normals
     # on the imaged shape. Held coordinates never move, so they stay at their imaged values.
-    frames = NodeFrames.build(traj.n_nodes, chest_wall(traj, target))
+    frames = NodeFrames.build(traj.n_nodes, chest_wall(traj, target, chest))
     density = prone_gravity() * force_density / GRAVITY_FORCE_DENSITY
 
     def solve(reference: NDArray, guess: NDArray | None, k: int) -> NDArray:
