@@ -61,14 +61,17 @@ def test_a_new_breast_through_predict_py(tiny_cohort, tmp_path):
     def rms(a, b):
         return float(np.sqrt(((a - b) ** 2).sum(1).mean()))
 
-    # Stated tolerance, on a patient the models never saw: the final shape within 35 % of
-    # the FE displacement (RMS over nodes) of the FE's final shape (measured: 5.8 mm of
-    # 23.2 mm, 25 %), the unloaded shape within 3 mm RMS of the FE's (measured: 1.8 mm).
+    # Stated tolerance, on a patient the models never saw: the final shape within 55 % of
+    # the FE displacement (RMS over nodes) of the FE's final shape (measured with the sliding
+    # chest wall: 3.9 mm of 8.5 mm, 46 %; the first engine's chest wall let the breast slide
+    # down the wall, 23.2 mm), the unloaded shape within 3 mm RMS of the FE's.
     error = rms(final, fe.compressed[-1])
-    assert error < 0.35 * rms(fe.compressed[-1], fe.points)
+    assert error < 0.55 * rms(fe.compressed[-1], fe.points)
     assert rms(unloaded, fe.unloaded[-1]) < 3.0
-    # The predicted shape is about as thick as the FE's (mm).
-    assert np.ptp(final[:, 2]) == pytest.approx(np.ptp(fe.compressed[-1][:, 2]), abs=6.0)
+    # The predicted shape is about as thick as the FE's over the plates (mm; the held muscle
+    # and the tissue behind the plates' chest-side edge stick out above and below them).
+    over = fe.compressed[-1][:, 1] > fe.plates[-1, 0, 0, 1]
+    assert np.ptp(final[over, 2]) == pytest.approx(np.ptp(fe.compressed[-1][over, 2]), abs=6.0)
     with open(result / "landmarks.csv") as f:
         (row,) = list(csv.DictReader(f))
     cell = fe.cells[len(fe.cells) // 2]

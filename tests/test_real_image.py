@@ -16,7 +16,7 @@ from test_predictor import models  # noqa: F401  (fixture: a tiny network and XG
 import predict
 from fem import CONFIG_DIR
 from fem.contract.quality import signed_volume
-from fem.contract.trajectory import Trajectory
+from fem.contract.trajectory import NodeFlag, Trajectory
 from fem.engine.boundary import chest_wall_nodes
 from fem.mesh_breast import mesh_breast
 from fem.simulate import simulate_file
@@ -73,8 +73,8 @@ def test_muscle_less_breast_ct_meshes_simulates_and_predicts(tmp_path, models): 
     )  # fmt: skip
     fe = Trajectory.load(simulate_file(cfg).with_suffix(".npz"))
     assert fe.compression_ratio[-1] == pytest.approx(0.3)
-    held = chest_wall_nodes(fe)
-    np.testing.assert_allclose(fe.unloaded[-1][held, 1], fe.points[held, 1])
+    held = np.setdiff1d(chest_wall_nodes(fe), fe.flagged(NodeFlag.SKIN))  # the rim slides
+    np.testing.assert_array_equal(fe.unloaded[-1][held], fe.points[held])
     assert fe.metadata["simulation"]["min_element_volume_ratio"] > 0
     # 3. predict.py on the image itself
     thickness = 0.7 * np.ptp(fe.unloaded[-1][:, 2])

@@ -251,10 +251,12 @@ def plate_schedule(
     normal = lower_plate_normal(view, angle, traj.metadata.get("laterality"), traj.source)
     bottom, top = skin_span(traj, start, normal)
     if not 0 < compressed_thickness < top - bottom:
+        along = (
+            "cranio-caudal extent" if view == "cc" else f"extent along the {view} plates' normal"
+        )
         raise ValueError(
             f"{traj.source}: compressed thickness {compressed_thickness:.1f} mm is not smaller "
-            f"than the breast's extent {top - bottom:.1f} mm along the plate normal "
-            "(or not positive)"
+            f"than the breast's {along} {top - bottom:.1f} mm (or not positive)"
         )
     wall = chest_wall_nodes(traj)
     edge = float(start[wall, AP_AXIS].max()) if wall.size else float(start[:, AP_AXIS].min())
