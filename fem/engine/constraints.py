@@ -123,21 +123,26 @@ class NodeFrames:
         held: HeldDirections,
         plate_normal: NDArray | None = None,
         plate_nodes: NDArray | None = None,
+        edge_normal: NDArray | None = None,
+        behind: NDArray | None = None,
     ) -> NodeFrames:
         """Frames in which the ``held`` directions and the plates' ``plate_normal`` are
-        coordinates (for the plates' candidate nodes ``plate_nodes``).
+        coordinates (for the plates' candidate nodes ``plate_nodes``; for those of them
+        ``behind`` the plates' chest-side edge, the normal of its face, ``edge_normal``).
 
         A node keeps the identity frame when its held directions are coordinate axes and the
-        plate normal is one too; otherwise its frame is the held directions, then the normal's
-        part orthogonal to them, then the rest (right-handed).
+        plate normal is one too; otherwise its frame is the held directions, then the bounded
+        direction's part orthogonal to them, then the rest (right-handed).
         """
         rotations = np.tile(np.eye(3), (n_nodes, 1, 1))
         is_held = np.zeros((n_nodes, 3), bool)
         normal = None if plate_normal is None else np.asarray(plate_normal, float)
         turned = normal is not None and _axis_index(normal) is None
-        on_plate = np.zeros(n_nodes, bool)
+        on_plate, is_behind = np.zeros(n_nodes, bool), np.zeros(n_nodes, bool)
         if normal is not None:
             on_plate[np.asarray(plate_nodes, np.int64)] = True
+        if behind is not None:
+            is_behind[np.asarray(behind, np.int64)] = True
         rotated = []
         order = np.argsort(held.nodes, kind="stable")
         nodes, starts = np.unique(held.nodes[order], return_index=True)
@@ -147,7 +152,8 @@ class NodeFrames:
                 is_held[i, axes] = True
                 continue
             basis = _orthonormal_rows(dirs)
-            rotations[i] = _completed(basis, normal if on_plate[i] else None)
+            bounded = (edge_normal if is_behind[i] else normal) if on_plate[i] else None
+            rotations[i] = _completed(basis, bounded)
             is_held[i, : len(basis)] = True
             rotated.append(i)
         if turned:  # the free candidate nodes turn to the plates
@@ -202,23 +208,27 @@ class FramedModel:
         self.cells = model.cells
         self._T = frames.transform() if frames.rotated.size else None
         self.plates = [p for p in model.parts if isinstance(p, RigidPlate)]
-        self._bounded = [self._coordinate(p.nodes, p.normal, required=True) for p in self.plates]
-        self._edges = [self._coordinate(p.nodes, p.axis, required=False) for p in self.plates]
+        self._bounded, self._edges = [], []
+        for p in self.plates:
+            front = np.ones(len(p.nodes), bool) if p.front is None else p.front
+            self._bounded.append(self._coordinate(p.nodes, p.normal, front))
+            self._edges.append(self._coordinate(p.nodes, p.axis, ~front))
 
     def _coordinate(
-        self, nodes: NDArray, direction: NDArray, required: bool
+        self, nodes: NDArray, direction: NDArray, required: NDArray
     ) -> tuple[NDArray, NDArray, NDArray]:
         """For each node: whether ``direction`` is a free coordinate of its frame (up to held
-        parts), which one (``a``) and ``c = direction . R e_a``."""
+        parts), which one (``a``) and ``c = direction . R e_a``; it must be for the
+        ``required`` nodes."""
         R = self.frames.rotations[nodes]  # (M, 3, 3)
         c = np.where(~self.frames.held[nodes], np.einsum("nia,i->na", R, direction), 0.0)
         a = np.argmax(np.abs(c), axis=1)
         coefficient = c[np.arange(len(a)), a]
         leaning = np.abs(c).sum(axis=1) - np.abs(coefficient) > RANK_TOLERANCE
-        if required and leaning.any():
+        if (leaning & required).any():
             raise ValueError(
-                f"plate normal {direction} is not a coordinate of the frames of "
-                f"{int(leaning.sum())} of its nodes (plates must be parallel)"
+                f"plate direction {direction} is not a coordinate of the frames of "
+                f"{int((leaning & required).sum())} of its nodes (plates must be parallel)"
             )
         return (np.abs(coefficient) > RANK_TOLERANCE) & ~leaning, a, coefficient
 
@@ -240,14 +250,13 @@ class FramedModel:
 
     def bounds(self, y: NDArray) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Lower and upper bounds (3N,) of the local coordinates at ``y`` (+-inf: unbounded):
-        each plate's surface for the nodes it covers, and its chest-side edge face for the
-        nodes behind it (beyond its surface at the last converged step: they cannot pass
-        over the plate)."""
+        each plate's surface for the nodes it covers, and the plane of its chest-side edge
+        face for the others once the plate is `RigidPlate.start`-ed (they stay behind it)."""
         x = self._x(y)
         lower = np.full(y.size, -np.inf)
         upper = np.full(y.size, np.inf)
         for plate, surface, edge in zip(self.plates, self._bounded, self._edges, strict=True):
-            behind = np.zeros(len(plate.nodes), bool) if plate.behind is None else plate.behind
+            behind = np.zeros(len(plate.nodes), bool) if plate.front is None else ~plate.front
             for take, (movable, a, c), direction, sign in (
                 (plate.covered(x), surface, plate.normal, 1.0),
                 (behind, edge, plate.axis, -1.0),
@@ -272,11 +281,28 @@ class FramedModel:
             out.append(np.where(touching, np.maximum(multiplier, 0.0), 0.0))
         return out
 
+    def update_friction(self, y: NDArray, gradient: NDArray) -> float:
+        """Give the plates with friction the normal forces of the equilibrium ``y`` (slip still
+        measured from the last converged step): one fixed-point update of the implicit
+        normal force. Returns the largest change over the largest force (0: none)."""
+        change, scale = 0.0, 0.0
+        for plate, force in zip(self.plates, self.contact_forces(y, gradient), strict=True):
+            if plate.friction > 0:
+                change = max(change, float(np.abs(force - plate.normal_force).max(initial=0.0)))
+                scale = max(scale, float(force.max(initial=0.0)))
+                plate.normal_force = force
+        return change / scale if scale > 0 else 0.0
+
     def accept(self, y: NDArray, gradient: NDArray) -> None:
-        """Tell the plates that ``y`` is a converged load step (lagged friction)."""
+        """Tell the plates that ``y`` is a converged load step (friction's slip anchors)."""
         x = self._x(y)
         for plate, force in zip(self.plates, self.contact_forces(y, gradient), strict=True):
             plate.accept(x, force)
+
+    def reject(self) -> None:
+        """A load step failed: back to the normal forces of the last converged one."""
+        for plate in self.plates:
+            plate.normal_force = plate.accepted_force.copy()
 
 
 def equilibrium_path(

@@ -280,11 +280,13 @@ def compression(
         RigidPlate(skin_nodes, *frame, n, friction, extent=schedule.extent)
         for frame in (lower_frame, upper_frame)
     ]
-    for plate in plates:  # no contact force yet; nodes already beyond a plate are behind it
+    for plate in plates:  # which nodes it bounds; no contact force yet
+        plate.start(moved.points)
         plate.accept(moved.points, np.zeros(len(skin_nodes)))
     model = Model(model.body, (*model.parts, *plates))
     held_all = chest_wall(moved, moved.points, chest, (0,)) + (held or HeldDirections.none())
-    frames = NodeFrames.build(n, held_all, lower_frame[1], skin_nodes)
+    behind = skin_nodes[~plates[0].front]
+    frames = NodeFrames.build(n, held_all, lower_frame[1], skin_nodes, lower_frame[2], behind)
     f = nodal_body_force(model.body, np.asarray(body_force, float))
     record = np.arange(1, n_steps + 1) / n_steps
 

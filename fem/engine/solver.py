@@ -74,6 +74,12 @@ class NewtonSettings:
         Smallest line-search step before the increment is declared failed.
     min_jacobian : float
         Elements with ``det F`` below this count as inverted.
+    friction_tolerance : float
+        A load step's friction uses the normal forces of its own equilibrium: Newton is
+        repeated with the updated forces (`fem.engine.constraints.FramedModel.update_friction`)
+        until they change by less than this share of the largest one, ...
+    friction_updates : int
+        ... at most this many times (the forces of the last step are the first guess).
     max_contraction : float
         Newton first steps with the stored factorization of an earlier tangent (modified
         Newton: no assembly, one back-substitution; held DOFs stay, and a step through a
@@ -88,6 +94,8 @@ class NewtonSettings:
     max_iterations: int = 25
     min_step: float = 1.0 / 64
     min_jacobian: float = 1e-3
+    friction_tolerance: float = 1e-3
+    friction_updates: int = 10
     max_contraction: float = 0.5
 
 
@@ -430,7 +438,16 @@ def load_ramp(
                 configure(nxt)
             try:
                 x_new, iterations, gradient = newton(body, guess, free, load(nxt), settings, linear)
+                for _ in range(
+                    settings.friction_updates if hasattr(body, "update_friction") else 0
+                ):
+                    if body.update_friction(x_new, gradient) <= settings.friction_tolerance:
+                        break
+                    x_new, more, gradient = newton(body, x_new, free, load(nxt), settings, linear)
+                    iterations += more
             except SolverError as exc:
+                if hasattr(body, "reject"):
+                    body.reject()
                 cutbacks += 1
                 increment *= 0.5
                 if cutbacks > max_cutbacks:
