@@ -13,6 +13,23 @@ configuration. Second Piola-Kirchhoff stress and material tangent:
 
 and with the 2-D shape gradients ``G`` (3 x 2) the nodal forces ``f_a = A F_s S G_a`` and the
 stiffness ``K_ab = A [(G_a . S G_b) I + (F_s G_a) : CC : (F_s G_b)]``.
+
+A membrane has no bending stiffness: under in-plane compression it wrinkles, and a compressed
+neo-Hookean membrane (``S < 0``) makes the equilibrium non-unique (a node of the skin pops in or
+out by millimetres depending on the load increments). With ``tension_field`` (default) the
+energy is relaxed as in tension-field theory (Pipkin 1986): with the principal values
+``c1 >= c2`` of ``C`` and the natural width of uniaxial tension ``c2 = c1^-1/2`` (where
+``S_2 = 0``), a triangle is
+
+* taut (``c2 >= c1^-1/2``): ``W`` as above;
+* wrinkled (``c1 > 1 > ...``, ``c2 < c1^-1/2``): ``W = A t mu/2 (c1 + 2 c1^-1/2 - 3)``, the
+  uniaxial tension along the first principal direction ``n1``,
+  ``S = mu t (1 - c1^-3/2) n1 n1``, ``CC = 4 [W'' P (x) P + W' / (c1 - c2) M (x) M]`` with
+  ``P = n1 n1``, ``M = (n1 n2 + n2 n1) / sqrt 2``;
+* slack (``c1 <= 1``): no energy, no stress.
+
+The relaxed energy is continuous with continuous stress; it never carries compression, so the
+skin adds no negative geometric stiffness.
 """
 
 from __future__ import annotations
@@ -60,12 +77,15 @@ class SkinMembrane:
         Shear modulus, Pa.
     thickness : float
         Membrane thickness, mm.
+    tension_field : bool
+        Relax the energy so that the membrane wrinkles instead of carrying compression.
     """
 
     points: NDArray
     triangles: NDArray
     mu: float
     thickness: float = 2.0
+    tension_field: bool = True
     grads: NDArray = field(init=False, repr=False)
     areas: NDArray = field(init=False, repr=False)
 
@@ -82,38 +102,63 @@ class SkinMembrane:
         self._pattern = (unique // (3 * n), unique % (3 * n))
         self._ndof = 3 * n
 
-    def _kinematics(self, x: NDArray) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+    def _kinematics(self, x: NDArray) -> tuple[NDArray, NDArray]:
         Fs = np.swapaxes(x[self.triangles], 1, 2) @ self.grads  # (S, 3, 2)
-        C = np.swapaxes(Fs, 1, 2) @ Fs  # (S, 2, 2), symmetric
+        return Fs, np.swapaxes(Fs, 1, 2) @ Fs  # C (S, 2, 2), symmetric
+
+    def response(self, C: NDArray) -> tuple[NDArray, NDArray, NDArray]:
+        """Energy per reference area (S,), Pa mm; stress ``S`` (S, 2, 2), Pa mm; and material
+        tangent ``CC = 2 dS/dC`` (S, 2, 2, 2, 2), Pa mm, of the right Cauchy-Green tensors
+        ``C`` (S, 2, 2) (module docstring)."""
+        mt = self.mu * self.thickness
         I3 = C[:, 0, 0] * C[:, 1, 1] - C[:, 0, 1] ** 2
         adjugate = np.stack([C[:, 1, 1], -C[:, 0, 1], -C[:, 0, 1], C[:, 0, 0]], axis=1)
-        return Fs, C, adjugate.reshape(-1, 2, 2) / I3[:, None, None], I3
+        Ci = adjugate.reshape(-1, 2, 2) / I3[:, None, None]
+        w = 0.5 * mt * (np.trace(C, axis1=1, axis2=2) + 1.0 / I3 - 3.0)
+        S = mt * (np.eye(2) - Ci / I3[:, None, None])
+        sym = 0.5 * (np.einsum("sac,sbd->sabcd", Ci, Ci) + np.einsum("sad,sbc->sabcd", Ci, Ci))
+        CC = (2.0 * mt / I3)[:, None, None, None, None] * (
+            sym + np.einsum("sab,scd->sabcd", Ci, Ci)
+        )
+        if not self.tension_field:
+            return w, S, CC
+        c, n = np.linalg.eigh(C)  # ascending: c2 = c[:, 0], c1 = c[:, 1]
+        c2, c1 = c[:, 0], c[:, 1]
+        n2, n1 = n[:, :, 0], n[:, :, 1]
+        slack = c1 <= 1.0
+        wrinkled = ~slack & (c2 < c1**-0.5)
+        k = wrinkled
+        P = np.einsum("si,sj->sij", n1[k], n1[k])
+        M = (
+            np.einsum("si,sj->sij", n1[k], n2[k]) + np.einsum("si,sj->sij", n2[k], n1[k])
+        ) / np.sqrt(2)
+        d1 = 0.5 * mt * (1.0 - c1[k] ** -1.5)  # W'(c1)
+        d2 = 0.75 * mt * c1[k] ** -2.5  # W''(c1)
+        w[k] = 0.5 * mt * (c1[k] + 2.0 * c1[k] ** -0.5 - 3.0)
+        S[k] = 2.0 * d1[:, None, None] * P
+        CC[k] = 4.0 * (
+            d2[:, None, None, None, None] * np.einsum("sab,scd->sabcd", P, P)
+            + (d1 / (c1[k] - c2[k]))[:, None, None, None, None] * np.einsum("sab,scd->sabcd", M, M)
+        )
+        w[slack], S[slack], CC[slack] = 0.0, 0.0, 0.0
+        return w, S, CC
 
     def energy(self, x: NDArray) -> float:
         """Stored energy, Pa mm^3."""
-        _, C, _, I3 = self._kinematics(x)
-        w = 0.5 * self.mu * self.thickness * (np.trace(C, axis1=1, axis2=2) + 1.0 / I3 - 3.0)
-        return float(self.areas @ w)
-
-    def _stress(self, Ci: NDArray, I3: NDArray) -> NDArray:
-        return self.mu * self.thickness * (np.eye(2) - Ci / I3[:, None, None])
+        _, C = self._kinematics(x)
+        return float(self.areas @ self.response(C)[0])
 
     def internal_force(self, x: NDArray) -> NDArray[np.float64]:
         """``dW/dx`` flattened (3N,), Pa mm^2."""
-        Fs, _, Ci, I3 = self._kinematics(x)
-        fe = self.areas[:, None, None] * np.einsum(
-            "sij,sjk,sak->sai", Fs, self._stress(Ci, I3), self.grads
-        )
+        Fs, C = self._kinematics(x)
+        S = self.response(C)[1]
+        fe = self.areas[:, None, None] * np.einsum("sij,sjk,sak->sai", Fs, S, self.grads)
         return np.bincount(self.dofs.ravel(), weights=fe.ravel(), minlength=self._ndof)
 
     def tangent(self, x: NDArray) -> sparse.csr_matrix:
         """``d2W/dx2`` as CSR (3N, 3N), Pa mm."""
-        Fs, _, Ci, I3 = self._kinematics(x)
-        S = self._stress(Ci, I3)
-        sym = 0.5 * (np.einsum("sac,sbd->sabcd", Ci, Ci) + np.einsum("sad,sbc->sabcd", Ci, Ci))
-        CC = (2.0 * self.mu * self.thickness / I3)[:, None, None, None, None] * (
-            sym + np.einsum("sab,scd->sabcd", Ci, Ci)
-        )
+        Fs, C = self._kinematics(x)
+        _, S, CC = self.response(C)
         geometric = np.einsum("saj,sjk,sbk->sab", self.grads, S, self.grads)  # (S, 3, 3)
         # Material part: d(E_ab)/dx_{n,i} = sym(F_ia G_nb); with CC's minor symmetry use F_ia G_nb.
         FG = np.einsum("sia,snb->sniab", Fs, self.grads)  # (S, 3 nodes, 3 dims, 2, 2)
