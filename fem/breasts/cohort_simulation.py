@@ -93,7 +93,7 @@ def result_row(metadata: dict) -> dict:
         "compressed_thickness_mm": sim["compressed_thickness_mm"],
         "volume_change": sim["volume_change"],
         "max_unloaded_displacement_mm": sim["max_unloaded_displacement_mm"],
-        "time_unloaded_s": sim["seconds"]["unloaded"],
+        "time_unloaded_s": sim["seconds"].get("unloaded", 0.0),
         "time_compression_s": sim["seconds"]["compression"],
     }
 

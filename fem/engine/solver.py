@@ -443,8 +443,7 @@ def load_ramp(
                 ):
                     if body.update_friction(x_new, gradient) <= settings.friction_tolerance:
                         break
-                    x_new, more, gradient = newton(body, x_new, free, load(nxt), settings, linear)
-                    iterations += more
+                    x_new, _, gradient = newton(body, x_new, free, load(nxt), settings, linear)
             except SolverError as exc:
                 if hasattr(body, "reject"):
                     body.reject()
