@@ -9,7 +9,7 @@ Each cohort breast (meshed from the cohort's generator and mesher settings,
 friction 0.25, skin membrane, standing gravity, the sliding chest wall) to its target
 compression ratio twice: in 70 and in 35 recorded steps (``--steps``). The final positions of
 the two paths are compared (RMS and largest node distance, mm); the physical checks of the
-70-step run are printed beside them: the muscle's largest motion, the interface nodes' largest
+70-step run are printed beside them (``--chest-wall``: the chest-wall mode, default sliding): the muscle's largest motion, the interface nodes' largest
 motion along the chest-wall normal, the deepest skin node over a plate, the smallest element
 volume ratio and the volume change. ``--largest N`` adds the N breasts of the cohort's
 ``--patients`` patients with the largest target compression ratio.
@@ -59,10 +59,10 @@ def largest_compression(n_patients: int, count: int) -> list[str]:
 
 
 @one_blas_thread
-def load_paths(name: str, view: str, steps: tuple[int, int]) -> dict:
+def load_paths(name: str, view: str, steps: tuple[int, int], chest: str) -> dict:
     traj = cohort_breast(name)
     t0 = time.perf_counter()
-    start = unloaded_state(traj, n_steps=100)[-1]
+    start = unloaded_state(traj, n_steps=100, chest=chest)[-1]
     unloaded_s = time.perf_counter() - t0
     normal = lower_plate_normal(view, 45.0, traj.metadata["laterality"], name)
     bottom, top = skin_span(traj, start, normal)
@@ -71,7 +71,7 @@ def load_paths(name: str, view: str, steps: tuple[int, int]) -> dict:
     finals, seconds = [], []
     for n in steps:
         t0 = time.perf_counter()
-        result = compression(traj, start, schedule, n_steps=n)
+        result = compression(traj, start, schedule, n_steps=n, chest=chest)
         seconds.append(time.perf_counter() - t0)
         finals.append(result.positions[-1])
     x = finals[0]
@@ -88,6 +88,7 @@ def load_paths(name: str, view: str, steps: tuple[int, int]) -> dict:
     return {
         "breast": name,
         "view": view,
+        "chest_wall": chest,
         "volume_cm3": traj.metadata["breast_volume_cm3"],
         "compression_ratio": ratio,
         "elements": traj.n_cells,
@@ -115,6 +116,7 @@ def main() -> None:
     ap.add_argument("--patients", type=int, default=258)
     ap.add_argument("--views", nargs="+", default=["cc", "mlo"])
     ap.add_argument("--steps", nargs=2, type=int, default=[70, 35])
+    ap.add_argument("--chest-wall", default="sliding", help="fem.engine.boundary.chest_wall mode")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
@@ -128,7 +130,9 @@ def main() -> None:
     rows = []
     with worker_pool(args.workers) as pool:
         futures = [
-            pool.submit(load_paths, n, v, tuple(args.steps)) for n in names for v in args.views
+            pool.submit(load_paths, n, v, tuple(args.steps), args.chest_wall)
+            for n in names
+            for v in args.views
         ]
         for future in as_completed(futures):
             r = future.result()
