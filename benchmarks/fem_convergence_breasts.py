@@ -7,7 +7,8 @@ Each breast's segmentation (the cohort's generator, ``conf/generator/default.yam
 at the cohort resolution (``conf/mesher/default.yaml``: about 2,250 tetrahedra) and at
 ``--factors`` times as many elements; each mesh goes through both steps with the paper's
 settings (`fem.engine.simulation`: 100 unloaded-state steps, 70 compression steps to the
-breast's target compression ratio, friction 0.25, skin membrane, sliding chest wall, cc view).
+breast's target compression ratio, friction 0.25, skin membrane, cc view) and the chest wall
+``--chest-wall`` (default sliding).
 The unloaded shape and the final compressed shape of every finer mesh are interpolated
 (linear, in the imaged configuration) at the imaged positions of the cohort mesh's nodes
 (`fem.contract.quality`-free: scikit-fem's element finder; a node outside the finer mesh takes
@@ -68,7 +69,7 @@ def sample(fine: Trajectory, fields: np.ndarray, points: np.ndarray) -> np.ndarr
 
 
 @one_blas_thread
-def simulate(name: str, factor: float) -> tuple[str, float, Trajectory, float]:
+def simulate(name: str, factor: float, chest: str) -> tuple[str, float, Trajectory, float]:
     generator = instantiate(OmegaConf.load(Path(CONFIG_DIR) / "generator" / "default.yaml"))
     mesher_cfg = OmegaConf.load(Path(CONFIG_DIR) / "mesher" / "default.yaml")
     mesher_cfg.target_elements = int(mesher_cfg.target_elements * factor)
@@ -76,7 +77,7 @@ def simulate(name: str, factor: float) -> tuple[str, float, Trajectory, float]:
     volume, meta = generator.breast(int(name[1:5]), name[-1])
     traj = instantiate(mesher_cfg)(volume, meta)
     t0 = time.perf_counter()
-    result = Simulation()(traj)
+    result = Simulation(chest_wall=chest)(traj)
     return name, factor, result, time.perf_counter() - t0
 
 
@@ -86,13 +87,16 @@ def main() -> None:
     )
     ap.add_argument("--breasts", nargs="+", required=True)
     ap.add_argument("--factors", nargs="+", type=float, default=[1.0, 2.0, 4.0])
+    ap.add_argument("--chest-wall", default="sliding", help="fem.engine.boundary.chest_wall mode")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
     runs: dict[tuple[str, float], tuple[Trajectory, float]] = {}
     with worker_pool(args.workers) as pool:
         futures = [
-            pool.submit(simulate, n, f) for n in args.breasts for f in sorted(args.factors)[::-1]
+            pool.submit(simulate, n, f, args.chest_wall)
+            for n in args.breasts
+            for f in sorted(args.factors)[::-1]
         ]
         for future in as_completed(futures):
             name, factor, traj, seconds = future.result()
@@ -119,6 +123,7 @@ def main() -> None:
             d = np.linalg.norm(own - ref, axis=2)  # (2, N)
             row = {
                 "breast": name,
+                "chest_wall": args.chest_wall,
                 "factor": factor,
                 "tetrahedra": traj.n_cells,
                 "volume_cm3": traj.metadata["breast_volume_cm3"],

@@ -40,6 +40,7 @@ from fem.engine.boundary import (
     skin_span,
 )
 from fem.engine.simulation import compression, unloaded_state
+from fem.engine.solver import SolverError
 
 
 def cohort_breast(name: str):
@@ -135,7 +136,12 @@ def main() -> None:
             for v in args.views
         ]
         for future in as_completed(futures):
-            r = future.result()
+            try:
+                r = future.result()
+            except SolverError as exc:  # a breast that does not converge is a result too
+                print(f"| failed: {exc} |", flush=True)
+                rows.append({"failed": str(exc)})
+                continue
             rows.append(r)
             print(
                 f"| {r['breast']} | {r['view']} | {r['volume_cm3']:.0f} "
@@ -147,7 +153,7 @@ def main() -> None:
                 flush=True,
             )
     if args.out:
-        rows.sort(key=lambda r: (r["breast"], r["view"]))
+        rows.sort(key=lambda r: (r.get("breast", ""), r.get("view", "")))
         write_json({"machine": platform.processor() or platform.machine(), "rows": rows}, args.out)
 
 
