@@ -242,3 +242,12 @@ def test_mlo_view_end_to_end(breast_mesh, tmp_path):
     features, targets, norm = compression_features(back)
     assert features.shape == (3, back.n_nodes, 22) and np.isfinite(features).all()
     np.testing.assert_allclose(norm.invert(targets), back.compressed, atol=1e-3)
+
+
+def test_simulation_failed_crosses_process_pools():
+    import pickle
+
+    from fem.engine.simulation import SimulationFailed
+
+    error = pickle.loads(pickle.dumps(SimulationFailed("b.npz", "compression", "why", {"a": 1.0})))
+    assert str(error) == "b.npz: compression failed: why" and error.seconds == {"a": 1.0}

@@ -318,6 +318,10 @@ class SimulationFailed(RuntimeError):
     def __init__(self, source: str, step: str, reason: str, seconds: dict[str, float]) -> None:
         super().__init__(f"{source}: {step} failed: {reason}")
         self.step, self.reason, self.seconds = step, reason, seconds
+        self.source = source
+
+    def __reduce__(self) -> tuple:  # picklable: it crosses process pools
+        return type(self), (self.source, self.step, self.reason, self.seconds)
 
 
 def plate_schedule_from(settings: Mapping[str, Any]) -> PlateSchedule:
