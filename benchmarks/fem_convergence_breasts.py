@@ -14,6 +14,10 @@ The unloaded shape and the final compressed shape of every finer mesh are interp
 (`fem.contract.quality`-free: scikit-fem's element finder; a node outside the finer mesh takes
 the values of its nearest node) and compared with the cohort mesh's own: RMS and 95th
 percentile of the node distance, mm, against the finest mesh.
+
+``--nested`` refines the cohort mesh itself instead (`nested`: every tetrahedron split into
+eight per level, factors 1, 8, 64), so all meshes have the same geometry, tissue boundaries
+and held chest wall and the differences are discretisation error only.
 """
 
 from __future__ import annotations
@@ -31,6 +35,7 @@ from omegaconf import OmegaConf
 from scipy.spatial import cKDTree
 
 from fem import CONFIG_DIR
+from fem.breasts.mesh import annotate
 from fem.breasts.pool import one_blas_thread, worker_pool
 from fem.contract.atomic import write_json
 from fem.contract.trajectory import Trajectory
@@ -68,14 +73,35 @@ def sample(fine: Trajectory, fields: np.ndarray, points: np.ndarray) -> np.ndarr
     return out
 
 
+def nested(traj: Trajectory, levels: int) -> Trajectory:
+    """``traj``'s mesh with every tetrahedron split into eight ``levels`` times (scikit-fem),
+    tissue labels inherited (each child takes its parent's, found at its centroid), node flags
+    and skin rebuilt (`fem.breasts.mesh.annotate`): the same geometry and boundaries."""
+    coarse = skfem.MeshTet(traj.points.T.copy(), traj.cells.T.copy())
+    fine = coarse.refined(levels)
+    points, cells = fine.p.T.copy(), fine.t.T.copy()
+    parent = coarse.element_finder()(*points[cells].mean(axis=1).T)
+    v = points[cells]
+    negative = (
+        np.einsum("ij,ij->i", np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), v[:, 3] - v[:, 0]) < 0
+    )
+    cells[negative] = cells[negative][:, [0, 2, 1, 3]]
+    return annotate(points, cells, traj.tissue[parent], dict(traj.metadata), traj.source)
+
+
 @one_blas_thread
-def simulate(name: str, factor: float, chest: str) -> tuple[str, float, Trajectory, float]:
+def simulate(
+    name: str, factor: float, chest: str, refine: bool
+) -> tuple[str, float, Trajectory, float]:
     generator = instantiate(OmegaConf.load(Path(CONFIG_DIR) / "generator" / "default.yaml"))
     mesher_cfg = OmegaConf.load(Path(CONFIG_DIR) / "mesher" / "default.yaml")
-    mesher_cfg.target_elements = int(mesher_cfg.target_elements * factor)
-    mesher_cfg.tolerance = int(mesher_cfg.tolerance * factor)
+    if not refine:
+        mesher_cfg.target_elements = int(mesher_cfg.target_elements * factor)
+        mesher_cfg.tolerance = int(mesher_cfg.tolerance * factor)
     volume, meta = generator.breast(int(name[1:5]), name[-1])
     traj = instantiate(mesher_cfg)(volume, meta)
+    if refine and factor > 1:
+        traj = nested(traj, round(np.log(factor) / np.log(8)))
     t0 = time.perf_counter()
     result = Simulation(chest_wall=chest)(traj)
     return name, factor, result, time.perf_counter() - t0
@@ -88,13 +114,18 @@ def main() -> None:
     ap.add_argument("--breasts", nargs="+", required=True)
     ap.add_argument("--factors", nargs="+", type=float, default=[1.0, 2.0, 4.0])
     ap.add_argument("--chest-wall", default="sliding", help="fem.engine.boundary.chest_wall mode")
+    ap.add_argument(
+        "--nested",
+        action="store_true",
+        help="refine the cohort mesh itself (factors must be powers of 8) instead of remeshing",
+    )
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
     runs: dict[tuple[str, float], tuple[Trajectory, float]] = {}
     with worker_pool(args.workers) as pool:
         futures = [
-            pool.submit(simulate, n, f, args.chest_wall)
+            pool.submit(simulate, n, f, args.chest_wall, args.nested)
             for n in args.breasts
             for f in sorted(args.factors)[::-1]
         ]
@@ -124,6 +155,7 @@ def main() -> None:
             row = {
                 "breast": name,
                 "chest_wall": args.chest_wall,
+                "nested": args.nested,
                 "factor": factor,
                 "tetrahedra": traj.n_cells,
                 "volume_cm3": traj.metadata["breast_volume_cm3"],
