@@ -39,7 +39,7 @@ from fem.breasts.mesh import annotate
 from fem.breasts.pool import one_blas_thread, worker_pool
 from fem.contract.atomic import write_json
 from fem.contract.trajectory import Trajectory
-from fem.engine.simulation import Simulation
+from fem.engine.simulation import Simulation, SimulationFailed
 
 
 def sample(fine: Trajectory, fields: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -130,7 +130,11 @@ def main() -> None:
             for f in sorted(args.factors)[::-1]
         ]
         for future in as_completed(futures):
-            name, factor, traj, seconds = future.result()
+            try:
+                name, factor, traj, seconds = future.result()
+            except SimulationFailed as exc:  # the breast is left out of the table
+                print(f"failed: {exc}", flush=True)
+                continue
             runs[name, factor] = traj, seconds
             print(f"{name} x{factor:g}: {traj.n_cells} tetrahedra, {seconds:.0f} s", flush=True)
     print(
@@ -141,6 +145,8 @@ def main() -> None:
     rows = []
     finest = max(args.factors)
     for name in args.breasts:
+        if any((name, f) not in runs for f in args.factors):
+            continue
         coarse, _ = runs[name, min(args.factors)]
         reference = runs[name, finest][0]
         ref = sample(
