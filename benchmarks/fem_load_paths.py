@@ -35,9 +35,7 @@ from fem.contract.trajectory import NodeFlag, Tissue
 from fem.engine.boundary import (
     chest_wall_nodes,
     chest_wall_normals,
-    lower_plate_normal,
     plate_schedule,
-    skin_span,
 )
 from fem.engine.simulation import compression, unloaded_state
 from fem.engine.solver import SolverError
@@ -65,10 +63,8 @@ def load_paths(name: str, view: str, steps: tuple[int, int], chest: str) -> dict
     t0 = time.perf_counter()
     start = unloaded_state(traj, n_steps=100, chest=chest)[-1]
     unloaded_s = time.perf_counter() - t0
-    normal = lower_plate_normal(view, 45.0, traj.metadata["laterality"], name)
-    bottom, top = skin_span(traj, start, normal)
     ratio = traj.metadata["target_compression_ratio"]
-    schedule = plate_schedule(traj, start, (1 - ratio) * (top - bottom), view)
+    schedule = plate_schedule(traj, start, view=view, compression_ratio=ratio)
     finals, seconds = [], []
     for n in steps:
         t0 = time.perf_counter()

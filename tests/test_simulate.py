@@ -13,7 +13,6 @@ from fem.engine.boundary import (
     chest_wall_nodes,
     chest_wall_normals,
     plate_schedule,
-    skin_span,
 )
 from fem.engine.simulation import (
     PAPER_MATERIALS,
@@ -94,13 +93,7 @@ def test_skin_membrane_stiffens_the_breast(breast_mesh, unloaded):
 
 
 def schedule(traj, start, ratio, view="cc"):
-    normal = {"cc": np.array([0.0, 0.0, 1.0]), "mlo": None}[view]
-    if normal is None:
-        from fem.engine.boundary import lower_plate_normal
-
-        normal = lower_plate_normal("mlo", 45.0, traj.metadata["laterality"], traj.source)
-    bottom, top = skin_span(traj, start, normal)
-    return plate_schedule(traj, start, (1 - ratio) * (top - bottom), view)
+    return plate_schedule(traj, start, view=view, compression_ratio=ratio)
 
 
 @pytest.fixture(scope="module", params=["cc", "mlo"])

@@ -153,10 +153,8 @@ def read_constraints(path: str | Path, n_nodes: int) -> HeldDirections:
             f"{path}: node indices must lie in [0, {n_nodes}) (simulation.constraints), got "
             f"[{nodes.min()}, {nodes.max()}]"
         )
-    held = HeldDirections.none()
-    for i, axes in rows:
-        held = held + HeldDirections.axes([i], sorted({AXIS_LETTERS[a] for a in axes}))
-    return held
+    axes = [sorted({AXIS_LETTERS[a] for a in letters}) for _, letters in rows]
+    return HeldDirections(np.repeat(nodes, [len(a) for a in axes]), np.eye(3)[np.concatenate(axes)])
 
 
 def lower_plate_normal(view: str, angle_deg: float, laterality: str | None, source: str) -> NDArray:
@@ -233,15 +231,17 @@ def skin_span(traj: Trajectory, start: NDArray, normal: NDArray) -> tuple[float,
 def plate_schedule(
     traj: Trajectory,
     start: NDArray,
-    compressed_thickness: float,
+    compressed_thickness: float | None = None,
     view: str = "cc",
     angle: float = 45.0,
+    compression_ratio: float | None = None,
 ) -> PlateSchedule:
     """The plates that compress the shape ``start`` (N, 3) of ``traj``'s mesh to
-    ``compressed_thickness`` (mm) in the ``view``: the lower plate at the skin node lowest
-    along its normal (the inframammary fold for cc), the upper one starting at the highest (first
-    contact) and moving down to ``compressed_thickness`` above it; both reach back to the most
-    posterior chest-wall node.
+    ``compressed_thickness`` (mm), or to ``compression_ratio`` of the breast's extent along
+    their normal, in the ``view``: the lower plate at the skin node lowest along its normal (the
+    inframammary fold for cc), the upper one starting at the highest (first contact) and moving
+    down to the thickness above it; both reach back to the most anterior chest-wall node (a
+    rigid plate does not enter the torso).
 
     Raises
     ------
@@ -250,6 +250,8 @@ def plate_schedule(
     """
     normal = lower_plate_normal(view, angle, traj.metadata.get("laterality"), traj.source)
     bottom, top = skin_span(traj, start, normal)
+    if compression_ratio is not None:
+        compressed_thickness = (1.0 - compression_ratio) * (top - bottom)
     if not 0 < compressed_thickness < top - bottom:
         along = (
             "cranio-caudal extent" if view == "cc" else f"extent along the {view} plates' normal"

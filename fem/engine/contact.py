@@ -40,6 +40,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import sparse
 
+from fem.contract.plates import penetration
+
 #: How far a unit vector may be from unit length or orthogonality.
 UNIT_TOLERANCE = 1e-9
 
@@ -152,7 +154,7 @@ class RigidPlate:
     def gap(self, x: NDArray) -> NDArray[np.float64]:
         """Signed distance of each candidate node from the plate plane along the normal, mm
         (negative: inside the plate), (M,)."""
-        return (x[self.nodes] - self.origin) @ self.normal
+        return -penetration(x[self.nodes], self.frame)
 
     def accept(self, x: NDArray, normal_force: NDArray) -> None:
         """Start a new load step from the converged ``x``: the normal forces (M,) (Pa mm^2, the

@@ -40,10 +40,8 @@ from fem.engine.boundary import (
     VIEWS,
     PlateSchedule,
     chest_wall,
-    lower_plate_normal,
     plate_schedule,
     read_constraints,
-    skin_span,
 )
 from fem.engine.constraints import HeldDirections, NodeFrames, equilibrium_path
 from fem.engine.contact import RigidPlate
@@ -477,12 +475,8 @@ class Simulation:
         placed at first contact and moving to the target compression ratio."""
         if self._schedule is not None:
             return self._schedule
-        normal = lower_plate_normal(
-            self.view, self.angle, traj.metadata.get("laterality"), traj.source
-        )
-        bottom, top = skin_span(traj, start, normal)
-        thickness = (1.0 - self.target_ratio(traj)) * (top - bottom)
-        return plate_schedule(traj, start, thickness, self.view, self.angle)
+        ratio = self.target_ratio(traj)
+        return plate_schedule(traj, start, None, self.view, self.angle, compression_ratio=ratio)
 
     def __call__(self, traj: Trajectory) -> Trajectory:
         """Simulate both steps; returns a copy of ``traj`` with its trajectories filled in.
