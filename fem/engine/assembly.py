@@ -60,32 +60,58 @@ def shape_gradients(
     return grads, signed_volume(points, cells)
 
 
-def deformation_gradient(x: NDArray, cells: NDArray, grads: NDArray) -> NDArray[np.float64]:
-    """``F_e = sum_a x_a (x) grad N_a``, shape (E, 3, 3), for current node positions ``x``."""
-    return np.swapaxes(x[cells], 1, 2) @ grads
+def gradient_operator(cells: NDArray, grads: NDArray, n_nodes: int) -> sparse.csr_matrix:
+    """``D`` with ``F = (D @ x.ravel()).reshape(E, 3, 3)``: ``F_e,ij = sum_a x_{a,i} G_e,aj``.
+
+    Its transpose scatters element stresses to nodal forces, ``f = D^T vec(P)``
+    (``f_{a,i} = sum_j P_ij G_aj``). Shape (9E, 3N), four entries per row.
+    """
+    n_el = len(cells)
+    shape = (n_el, 3, 4, 3)  # [e, i, a, j]
+    rows = 9 * np.arange(n_el)[:, None, None, None] + 3 * np.arange(3)[None, :, None, None]
+    rows = rows + np.arange(3)[None, None, None, :]
+    cols = 3 * cells[:, None, :, None] + np.arange(3)[None, :, None, None]
+    values = np.broadcast_to(grads[:, None, :, :], shape)
+    return sparse.csr_matrix(
+        (
+            values.ravel(),
+            (np.broadcast_to(rows, shape).ravel(), np.broadcast_to(cols, shape).ravel()),
+        ),
+        shape=(9 * n_el, 3 * n_nodes),
+    )
 
 
-def jacobian_gradient(F: NDArray, grads: NDArray) -> NDArray[np.float64]:
-    """``dJ_e / dx_{a,i} = J F^-T_ij G_aj = (cof F)_ij G_aj``, shape (E, 4, 3)."""
-    return grads @ np.swapaxes(cofactor(F), 1, 2)
+def element_blocks(
+    F: NDArray, grads: NDArray, volumes: NDArray, mu: NDArray, q: NDArray
+) -> NDArray[np.float64]:
+    """Element tangents ``K_e[a, i, b, k] = G_aj C_ijkl G_bl`` of ``C = V A_iso + q d2J/dF2``,
+    shape (E, 4, 3, 4, 3), Pa mm.
 
+    With ``h_a = F^-1^T G_a``, ``f_a = F G_a``, ``a = J^-2/3`` and ``w = V mu a`` the contraction
+    is written out (`fem.engine.material.isochoric_tangent`, ``d2J/dF2 = J (F^-T (x) F^-T -
+    F^-1_li F^-1_jk)``) instead of forming the fourth-order tensor (4x faster):
 
-def jacobian_second_derivative(F: NDArray) -> NDArray[np.float64]:
-    """``d2 J / dF_ij dF_kl = J (F^-T_ij F^-T_kl - F^-1_jk F^-1_li)``, shape (E, 3, 3, 3, 3)."""
+        K_e = w (G_a . G_b) d_ik - 2/3 w (h_ai f_bk + f_ai h_bk)
+              + (2/9 w I1 + q J) h_ai h_bk + (w I1 / 3 - q J) h_bi h_ak.
+    """
     Finv, J = inverse(F)
-    J = J[:, None, None, None, None]
-    FinvT = np.swapaxes(Finv, 1, 2)
-    return J * (np.einsum("eij,ekl->eijkl", FinvT, FinvT) - np.einsum("ejk,eli->eijkl", Finv, Finv))
-
-
-def element_stiffness(C: NDArray, grads: NDArray) -> NDArray[np.float64]:
-    """``K_e[a, i, b, k] = G_aj C_ijkl G_bl``: a fourth-order tensor per element pulled back to
-    nodal blocks, shape (E, 4, 3, 4, 3); two batched matrix products instead of an einsum."""
-    n = len(C)
-    X = (C.reshape(n, 27, 3) @ np.swapaxes(grads, 1, 2)).reshape(n, 3, 3, 3, 4)  # [i, j, k, b]
-    X = np.swapaxes(X, 1, 2).reshape(n, 3, 36)  # [j, (i, k, b)]
-    K = (grads @ X).reshape(n, 4, 3, 3, 4)  # [a, i, k, b]
-    return np.swapaxes(K, 3, 4)
+    h = grads @ Finv  # (E, 4, 3): h_ai = F^-1_ji G_aj
+    f = grads @ np.swapaxes(F, 1, 2)  # (E, 4, 3): f_ai = F_il G_al
+    w = volumes * mu * J ** (-2.0 / 3.0)
+    I1 = np.einsum("eij,eij->e", F, F)
+    c1 = (-2.0 / 3.0 * w)[:, None]
+    c2 = (2.0 / 9.0 * w * I1 + q * J)[:, None]
+    c3 = (w * I1 / 3.0 - q * J)[:, None]
+    H, Fv = h.reshape(-1, 12), f.reshape(-1, 12)
+    K = H[:, :, None] * (c2 * H + c1 * Fv)[:, None, :]  # c2 h h + c1 h f
+    K += (c1 * Fv)[:, :, None] * H[:, None, :]  # c1 f_ai h_bk
+    K = K.reshape(-1, 4, 3, 4, 3)
+    swapped = (c3.reshape(-1, 1) * H)[:, :, None] * H[:, None, :]  # [a, k, b, i]: h_ak h_bi
+    K += swapped.reshape(-1, 4, 3, 4, 3).transpose(0, 1, 4, 3, 2)
+    gg = w[:, None, None] * (grads @ np.swapaxes(grads, 1, 2))  # (E, 4, 4): w G_a . G_b
+    for i in range(3):  # ... times d_ik
+        K[:, :, i, :, i] += gg
+    return K
 
 
 @dataclass
@@ -162,23 +188,40 @@ class HyperelasticBody:
         unique, self._scatter = np.unique(keys, return_inverse=True)
         self._pattern = (unique // (3 * n), unique % (3 * n))
         self._ndof = 3 * n
-        # dJ/dx as an (E, 3N) CSR with a fixed structure: only its data changes.
-        self._grad_rows = np.repeat(np.arange(n_el), 12)
-        self._grad_cols = self.dofs.ravel()
+        self._D = gradient_operator(self.cells, self.grads, n)
+        self._DT = self._D.T.tocsr()
+        # B = diag(1/V_p) S dJ/dx, the gradients of the patch averages Jbar_p, has a fixed
+        # structure and data linear in dJ/dx (E, 4, 3): B.data = bincount(_b_entry,
+        # _b_weight * dJ[_b_source]), one term per (patch, element of the patch, DOF).
+        Sc = (sparse.diags(1.0 / self.patch_volume) @ S).tocoo()
+        patch = np.repeat(Sc.row, 12)
+        dof = self.dofs[Sc.col].ravel()
+        keys = patch * (3 * n) + dof
+        unique, self._b_entry = np.unique(keys, return_inverse=True)
+        self._b_source = (12 * Sc.col[:, None] + np.arange(12)).ravel()
+        self._b_weight = np.repeat(Sc.data, 12)
+        self._b_pattern = (unique // (3 * n), unique % (3 * n))
+        self._cache: tuple[NDArray, tuple[NDArray, NDArray, NDArray]] | None = None
 
     @property
     def n_dofs(self) -> int:
         return self._ndof
 
     def _volumetric(self, x: NDArray) -> tuple[NDArray, NDArray, NDArray]:
-        F = deformation_gradient(x, self.cells, self.grads)
+        """``F`` (E, 3, 3), ``J`` (E,) and the patch averages ``Jbar`` (P,) at ``x``; the
+        last ones are kept (the line search's trial is the next iteration's state)."""
+        x = np.asarray(x, float)
+        if self._cache is not None and np.array_equal(self._cache[0], x):
+            return self._cache[1]
+        F = (self._D @ x.reshape(-1)).reshape(-1, 3, 3)
         J = determinant(F)
-        Jbar = (self.S @ J) / self.patch_volume
-        return F, J, Jbar
+        state = F, J, (self.S @ J) / self.patch_volume
+        self._cache = x.copy(), state
+        return state
 
     def min_jacobian(self, x: NDArray) -> float:
         """Smallest ``det F`` over the elements (<= 0: an element is inverted)."""
-        return float(determinant(deformation_gradient(x, self.cells, self.grads)).min())
+        return float(self._volumetric(x)[1].min())
 
     def energy(self, x: NDArray) -> float:
         """Strain energy at node positions ``x`` (N, 3), Pa mm^3."""
@@ -189,30 +232,33 @@ class HyperelasticBody:
         )
 
     def internal_force(self, x: NDArray) -> NDArray[np.float64]:
-        """``dW/dx``, flattened (3N,), Pa mm^2."""
+        """``dW/dx = D^T vec(V P_iso + q cof F)``, flattened (3N,), Pa mm^2 (``dJ/dF = cof F``)."""
         F, _, Jbar = self._volumetric(x)
         q = self.S.T @ volumetric_pressure(Jbar, self.patch_kappa)  # (E,)
-        P = isochoric_pk1(F, self.mu)
-        fe = self.volumes[:, None, None] * np.einsum("eij,eaj->eai", P, self.grads)
-        fe += q[:, None, None] * jacobian_gradient(F, self.grads)
-        return np.bincount(self.dofs.ravel(), weights=fe.ravel(), minlength=self._ndof)
+        stress = self.volumes[:, None, None] * isochoric_pk1(F, self.mu)
+        stress += q[:, None, None] * cofactor(F)
+        return self._DT @ stress.reshape(-1)
 
     def tangent(self, x: NDArray) -> sparse.csr_matrix:
         """``d2W/dx2`` as a symmetric CSR matrix (3N, 3N), Pa mm."""
         F, _, Jbar = self._volumetric(x)
         q = self.S.T @ volumetric_pressure(Jbar, self.patch_kappa)
-        C = self.volumes[:, None, None, None, None] * isochoric_tangent(F, self.mu)
-        C += q[:, None, None, None, None] * jacobian_second_derivative(F)
-        Ke = element_stiffness(C, self.grads)
+        Ke = element_blocks(F, self.grads, self.volumes, self.mu, q)
         data = np.bincount(self._scatter, weights=Ke.ravel(), minlength=len(self._pattern[0]))
         K = sparse.csr_matrix((data, self._pattern), shape=(self._ndof, self._ndof))
-        dJ = jacobian_gradient(F, self.grads).reshape(-1)
-        G = sparse.csr_matrix(
-            (dJ, (self._grad_rows, self._grad_cols)), shape=(len(self.cells), self._ndof)
-        )
-        B = sparse.diags(1.0 / self.patch_volume) @ self.S @ G
+        # B^T diag(c) B = (sqrt(c) B)^T (sqrt(c) B), c = V_p U''(Jbar_p) >= 0
+        dJ = (self.grads @ np.swapaxes(cofactor(F), 1, 2)).reshape(-1)  # dJ_e/dx_{a,i}
         c = self.patch_volume * volumetric_stiffness(Jbar, self.patch_kappa)
-        return (K + B.T @ sparse.diags(c) @ B).tocsr()
+        values = np.bincount(
+            self._b_entry,
+            weights=self._b_weight * dJ[self._b_source],
+            minlength=len(self._b_pattern[0]),
+        )
+        B = sparse.csr_matrix(
+            (values * np.sqrt(c)[self._b_pattern[0]], self._b_pattern),
+            shape=(len(self.patch_volume), self._ndof),
+        )
+        return (K + B.T @ B).tocsr()
 
 
 @dataclass

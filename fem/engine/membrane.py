@@ -106,53 +106,59 @@ class SkinMembrane:
         Fs = np.swapaxes(x[self.triangles], 1, 2) @ self.grads  # (S, 3, 2)
         return Fs, np.swapaxes(Fs, 1, 2) @ Fs  # C (S, 2, 2), symmetric
 
-    def response(self, C: NDArray) -> tuple[NDArray, NDArray, NDArray]:
+    def response(self, C: NDArray, tangent: bool = True) -> tuple[NDArray, NDArray, NDArray | None]:
         """Energy per reference area (S,), Pa mm; stress ``S`` (S, 2, 2), Pa mm; and material
-        tangent ``CC = 2 dS/dC`` (S, 2, 2, 2, 2), Pa mm, of the right Cauchy-Green tensors
-        ``C`` (S, 2, 2) (module docstring)."""
+        tangent ``CC = 2 dS/dC`` (S, 2, 2, 2, 2), Pa mm (None unless ``tangent``), of the right
+        Cauchy-Green tensors ``C`` (S, 2, 2) (module docstring)."""
         mt = self.mu * self.thickness
-        I3 = C[:, 0, 0] * C[:, 1, 1] - C[:, 0, 1] ** 2
-        adjugate = np.stack([C[:, 1, 1], -C[:, 0, 1], -C[:, 0, 1], C[:, 0, 0]], axis=1)
-        Ci = adjugate.reshape(-1, 2, 2) / I3[:, None, None]
-        w = 0.5 * mt * (np.trace(C, axis1=1, axis2=2) + 1.0 / I3 - 3.0)
+        a, b, d = C[:, 0, 0], C[:, 0, 1], C[:, 1, 1]
+        I3 = a * d - b**2
+        Ci = np.stack([d, -b, -b, a], axis=1).reshape(-1, 2, 2) / I3[:, None, None]
+        w = 0.5 * mt * (a + d + 1.0 / I3 - 3.0)
         S = mt * (np.eye(2) - Ci / I3[:, None, None])
-        sym = 0.5 * (np.einsum("sac,sbd->sabcd", Ci, Ci) + np.einsum("sad,sbc->sabcd", Ci, Ci))
-        CC = (2.0 * mt / I3)[:, None, None, None, None] * (
-            sym + np.einsum("sab,scd->sabcd", Ci, Ci)
-        )
+        CC = None
+        if tangent:
+            sym = 0.5 * (np.einsum("sac,sbd->sabcd", Ci, Ci) + np.einsum("sad,sbc->sabcd", Ci, Ci))
+            CC = (2.0 * mt / I3)[:, None, None, None, None] * (
+                sym + np.einsum("sab,scd->sabcd", Ci, Ci)
+            )
         if not self.tension_field:
             return w, S, CC
-        c, n = np.linalg.eigh(C)  # ascending: c2 = c[:, 0], c1 = c[:, 1]
-        c2, c1 = c[:, 0], c[:, 1]
-        n2, n1 = n[:, :, 0], n[:, :, 1]
+        # principal values c1 >= c2 and directions n1 (angle theta), n2 of the 2 x 2 C
+        radius = np.hypot(0.5 * (a - d), b)
+        c1, c2 = 0.5 * (a + d) + radius, 0.5 * (a + d) - radius
         slack = c1 <= 1.0
-        wrinkled = ~slack & (c2 < c1**-0.5)
-        k = wrinkled
-        P = np.einsum("si,sj->sij", n1[k], n1[k])
-        M = (
-            np.einsum("si,sj->sij", n1[k], n2[k]) + np.einsum("si,sj->sij", n2[k], n1[k])
-        ) / np.sqrt(2)
+        k = ~slack & (c2 < c1**-0.5)  # wrinkled
+        theta = 0.5 * np.arctan2(2.0 * b[k], (a - d)[k])
+        n1 = np.stack([np.cos(theta), np.sin(theta)], axis=1)
+        n2 = np.stack([-n1[:, 1], n1[:, 0]], axis=1)
+        P = n1[:, :, None] * n1[:, None, :]
         d1 = 0.5 * mt * (1.0 - c1[k] ** -1.5)  # W'(c1)
-        d2 = 0.75 * mt * c1[k] ** -2.5  # W''(c1)
         w[k] = 0.5 * mt * (c1[k] + 2.0 * c1[k] ** -0.5 - 3.0)
         S[k] = 2.0 * d1[:, None, None] * P
-        CC[k] = 4.0 * (
-            d2[:, None, None, None, None] * np.einsum("sab,scd->sabcd", P, P)
-            + (d1 / (c1[k] - c2[k]))[:, None, None, None, None] * np.einsum("sab,scd->sabcd", M, M)
-        )
-        w[slack], S[slack], CC[slack] = 0.0, 0.0, 0.0
+        w[slack], S[slack] = 0.0, 0.0
+        if tangent:
+            M = (n1[:, :, None] * n2[:, None, :] + n2[:, :, None] * n1[:, None, :]) / np.sqrt(2)
+            d2 = 0.75 * mt * c1[k] ** -2.5  # W''(c1)
+            CC[k] = 4.0 * (
+                d2[:, None, None, None, None] * P[:, :, :, None, None] * P[:, None, None]
+                + (d1 / (c1[k] - c2[k]))[:, None, None, None, None]
+                * M[:, :, :, None, None]
+                * M[:, None, None]
+            )
+            CC[slack] = 0.0
         return w, S, CC
 
     def energy(self, x: NDArray) -> float:
         """Stored energy, Pa mm^3."""
         _, C = self._kinematics(x)
-        return float(self.areas @ self.response(C)[0])
+        return float(self.areas @ self.response(C, tangent=False)[0])
 
     def internal_force(self, x: NDArray) -> NDArray[np.float64]:
         """``dW/dx`` flattened (3N,), Pa mm^2."""
         Fs, C = self._kinematics(x)
-        S = self.response(C)[1]
-        fe = self.areas[:, None, None] * np.einsum("sij,sjk,sak->sai", Fs, S, self.grads)
+        S = self.response(C, tangent=False)[1]
+        fe = self.areas[:, None, None] * (self.grads @ np.swapaxes(Fs @ S, 1, 2))  # A F_s S G_a
         return np.bincount(self.dofs.ravel(), weights=fe.ravel(), minlength=self._ndof)
 
     def tangent(self, x: NDArray) -> sparse.csr_matrix:
