@@ -6,8 +6,9 @@ from conftest import assert_exact_derivatives
 
 from fem.breasts.mesh import bcc_lattice, compact_mesh
 from fem.contract.quality import boundary_faces
-from fem.engine.assembly import HyperelasticBody, skfem_tangent
+from fem.engine.assembly import HyperelasticBody, Model, skfem_tangent
 from fem.engine.material import lame_parameters, neo_hookean_pk1
+from fem.engine.membrane import SkinMembrane
 
 
 @pytest.fixture(scope="module")
@@ -79,3 +80,18 @@ def test_stabilization_interpolates_between_nodal_and_element(block):
     assert mixed - iso == pytest.approx(0.75 * (nodal - iso) + 0.25 * (element - iso), rel=1e-10)
     with pytest.raises(ValueError, match="stabilization"):
         HyperelasticBody(points, cells, mu, kappa, "nodal", 1.5)
+
+
+def test_model_tangent_in_one_pattern_equals_the_sum_of_its_parts(block):
+    """`Model.tangent` scatters every part into one `BlockPattern`: the same matrix as adding
+    each part's own sparse tangent, with full 3 x 3 node blocks."""
+    points, cells, mu, kappa = block
+    body = HyperelasticBody(points, cells, mu, kappa, "nodal")
+    skin = SkinMembrane(points, boundary_faces(points, cells)[0], mu=300.0)
+    model = Model(body, (skin,))
+    x = points + 0.3 * np.random.default_rng(4).standard_normal(points.shape)
+    expected = body.tangent(x) + skin.tangent(x)
+    K = model.tangent(x)
+    assert abs(K - expected).max() <= 1e-12 * abs(expected).max()
+    assert K.has_sorted_indices and np.all(np.diff(K.indptr)[::3] % 3 == 0)
+    assert model.tangent(x + 0.1).nnz == K.nnz  # the pattern is fixed

@@ -22,6 +22,7 @@ tested against.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -114,6 +115,69 @@ def element_blocks(
     return K
 
 
+class BlockPattern:
+    """A fixed CSR pattern (n, n) holding dense blocks over sets of DOFs, and where each set's
+    entries go: parts scatter their element blocks with one ``np.bincount`` (the
+    "hand-vectorised kernel") instead of adding sparse matrices.
+
+    Parameters
+    ----------
+    n : int
+        Number of DOFs.
+    dof_sets : sequence of (M, k) int
+        Each set's DOFs per block (element, triangle, node).
+    extra : sparse matrix, optional
+        Further entries (its pattern; ``B^T B`` of nodal averaging).
+    """
+
+    def __init__(self, n: int, dof_sets: Sequence[NDArray], extra: sparse.spmatrix | None = None):
+        keys = [self._keys(d, n) for d in dof_sets]
+        more = [] if extra is None else [extra.tocoo().row * np.int64(n) + extra.tocoo().col]
+        unique = np.unique(np.concatenate([*keys, *more]))
+        self.n = n
+        self.scatters = [np.searchsorted(unique, k) for k in keys]
+        self.indices = (unique % n).astype(np.int32)
+        self.indptr = np.searchsorted(unique // n, np.arange(n + 1)).astype(np.int32)
+        self._keys_all = unique
+        self._mapped: tuple[NDArray, NDArray, NDArray] | None = None  # a pattern -> positions
+
+    @staticmethod
+    def _keys(dofs: NDArray, n: int) -> NDArray[np.int64]:
+        k = dofs.shape[1]
+        return (np.repeat(dofs, k, axis=1) * np.int64(n) + np.tile(dofs, (1, k))).ravel()
+
+    @property
+    def nnz(self) -> int:
+        return len(self.indices)
+
+    def scatter(self, data: NDArray, which: int, blocks: NDArray) -> None:
+        """Add the blocks (M, k, k) of DOF set ``which`` to ``data`` (nnz,)."""
+        data += np.bincount(self.scatters[which], weights=blocks.ravel(), minlength=self.nnz)
+
+    def add(self, data: NDArray, M: sparse.csr_matrix) -> None:
+        """Add a CSR matrix whose entries lie in the pattern to ``data``."""
+        m = self._mapped
+        if m is None or not (np.array_equal(m[0], M.indptr) and np.array_equal(m[1], M.indices)):
+            rows = np.repeat(np.arange(self.n, dtype=np.int64), np.diff(M.indptr))
+            where = np.searchsorted(self._keys_all, rows * self.n + M.indices)
+            m = self._mapped = (M.indptr.copy(), M.indices.copy(), where)
+        data[m[2]] += M.data
+
+    def matrix(self, data: NDArray) -> sparse.csr_matrix:
+        """The CSR matrix with these values (sorted indices, full blocks)."""
+        K = sparse.csr_matrix((data, self.indices, self.indptr), shape=(self.n, self.n))
+        K.has_sorted_indices = True
+        return K
+
+
+def assemble(n: int, dofs: NDArray, blocks: NDArray) -> sparse.csr_matrix:
+    """CSR matrix (n, n) of element ``blocks`` (M, k, k) over ``dofs`` (M, k)."""
+    pattern = BlockPattern(n, [dofs])
+    data = np.zeros(pattern.nnz)
+    pattern.scatter(data, 0, blocks)
+    return pattern.matrix(data)
+
+
 @dataclass
 class HyperelasticBody:
     """A tetrahedral neo-Hookean body with a fixed sparsity pattern for its tangent.
@@ -182,11 +246,6 @@ class HyperelasticBody:
         self.patch_volume = np.asarray(S.sum(axis=1)).ravel()
         # DOF map and the fixed CSR pattern of the element blocks.
         self.dofs = (3 * self.cells[:, :, None] + np.arange(3)).reshape(n_el, 12)
-        rows = np.repeat(self.dofs, 12, axis=1).ravel()
-        cols = np.tile(self.dofs, (1, 12)).ravel()
-        keys = rows * (3 * n) + cols
-        unique, self._scatter = np.unique(keys, return_inverse=True)
-        self._pattern = (unique // (3 * n), unique % (3 * n))
         self._ndof = 3 * n
         self._D = gradient_operator(self.cells, self.grads, n)
         self._DT = self._D.T.tocsr()
@@ -239,14 +298,17 @@ class HyperelasticBody:
         stress += q[:, None, None] * cofactor(F)
         return self._DT @ stress.reshape(-1)
 
-    def tangent(self, x: NDArray) -> sparse.csr_matrix:
-        """``d2W/dx2`` as a symmetric CSR matrix (3N, 3N), Pa mm."""
+    def tangent_blocks(self, x: NDArray) -> NDArray[np.float64]:
+        """Element blocks (E, 12, 12) of the tangent over `dofs`, without the coupling of
+        nodal averaging (`volumetric_factor`), Pa mm."""
         F, _, Jbar = self._volumetric(x)
         q = self.S.T @ volumetric_pressure(Jbar, self.patch_kappa)
-        Ke = element_blocks(F, self.grads, self.volumes, self.mu, q)
-        data = np.bincount(self._scatter, weights=Ke.ravel(), minlength=len(self._pattern[0]))
-        K = sparse.csr_matrix((data, self._pattern), shape=(self._ndof, self._ndof))
-        # B^T diag(c) B = (sqrt(c) B)^T (sqrt(c) B), c = V_p U''(Jbar_p) >= 0
+        return element_blocks(F, self.grads, self.volumes, self.mu, q).reshape(-1, 12, 12)
+
+    def volumetric_factor(self, x: NDArray) -> sparse.csr_matrix:
+        """``sqrt(c) B`` with ``c = V_p U''(Jbar_p) >= 0`` and ``B = dJbar/dx`` (P, 3N): the
+        rest of the tangent is ``B^T diag(c) B``, the square of this."""
+        F, _, Jbar = self._volumetric(x)
         dJ = (self.grads @ np.swapaxes(cofactor(F), 1, 2)).reshape(-1)  # dJ_e/dx_{a,i}
         c = self.patch_volume * volumetric_stiffness(Jbar, self.patch_kappa)
         values = np.bincount(
@@ -254,21 +316,32 @@ class HyperelasticBody:
             weights=self._b_weight * dJ[self._b_source],
             minlength=len(self._b_pattern[0]),
         )
-        B = sparse.csr_matrix(
+        return sparse.csr_matrix(
             (values * np.sqrt(c)[self._b_pattern[0]], self._b_pattern),
             shape=(len(self.patch_volume), self._ndof),
         )
-        return (K + B.T @ B).tocsr()
+
+    def tangent(self, x: NDArray) -> sparse.csr_matrix:
+        """``d2W/dx2`` as a symmetric CSR matrix (3N, 3N), Pa mm."""
+        B = self.volumetric_factor(x)
+        return (assemble(self._ndof, self.dofs, self.tangent_blocks(x)) + B.T @ B).tocsr()
 
 
 @dataclass
 class Model:
     """A solid body plus parts (skin membrane, plates' friction): energies, forces and
     tangents add. The plates' non-penetration bounds and lagged normal forces are handled in
-    node frames (`fem.engine.constraints.FramedModel`)."""
+    node frames (`fem.engine.constraints.FramedModel`).
+
+    Each part gives its tangent as blocks over fixed DOFs (``dofs`` (M, k) and
+    ``tangent_blocks(x)`` (M, k, k)); the tangent is scattered into one fixed `BlockPattern`
+    (the body's elements, the parts' blocks and nodal averaging's ``B^T B``), built on the
+    first call.
+    """
 
     body: HyperelasticBody
     parts: tuple = ()
+    _pattern: BlockPattern | None = field(default=None, init=False, repr=False)
 
     @property
     def cells(self) -> NDArray:
@@ -286,10 +359,19 @@ class Model:
         )
 
     def tangent(self, x: NDArray) -> sparse.csr_matrix:
-        K = self.body.tangent(x)
-        for p in self.parts:
-            K = K + p.tangent(x)
-        return K.tocsr()
+        B = self.body.volumetric_factor(x)
+        if self._pattern is None:
+            ones = B.copy()
+            ones.data[:] = 1.0  # the symbolic pattern of B^T B (no cancellation)
+            self._pattern = BlockPattern(
+                self.body.n_dofs, [self.body.dofs, *(p.dofs for p in self.parts)], ones.T @ ones
+            )
+        data = np.zeros(self._pattern.nnz)
+        self._pattern.scatter(data, 0, self.body.tangent_blocks(x))
+        for i, p in enumerate(self.parts, start=1):
+            self._pattern.scatter(data, i, p.tangent_blocks(x))
+        self._pattern.add(data, B.T.tocsr() @ B)
+        return self._pattern.matrix(data)
 
 
 def skfem_tangent(body: HyperelasticBody, x: NDArray) -> sparse.csr_matrix:

@@ -190,9 +190,6 @@ class NodeFrames:
         """``T^T K T`` (``T = blockdiag(R_i)``) of a CSR matrix with ``plan``'s pattern: only
         the entries in the rows and columns of the rotated nodes change (15x faster than the
         two sparse products with `transform`, equal to round-off)."""
-        if plan.rows is None:  # a pattern with partial blocks (exact zeros dropped)
-            T = self.transform()
-            return (T.T @ K @ T).tocsr()
         data = K.data.copy()
         R = self.rotations
         data[plan.rows] = np.einsum("sji,js->is", R[plan.row_nodes], data[plan.rows])  # R_I^T K
@@ -201,8 +198,7 @@ class NodeFrames:
 
     def rotation_plan(self, K: sparse.csr_matrix) -> RotationPlan:
         """Where `rotate` reads and writes in ``K.data`` (sorted CSR whose pattern is made of
-        full 3 x 3 node blocks, as assembled tangents are unless SciPy dropped an exact zero;
-        without full blocks `rotate` multiplies by `transform`)."""
+        full 3 x 3 node blocks, as `fem.engine.assembly.Model.tangent` makes them)."""
         indptr, length, r = K.indptr, np.diff(K.indptr), self.rotated
         first = np.flatnonzero(K.indices % 3 == 0)
         if (
@@ -214,7 +210,7 @@ class NodeFrames:
                 != 1
             )
         ):
-            return RotationPlan(K.indptr.copy(), K.indices.copy())
+            raise ValueError("the tangent's pattern is not made of full 3 x 3 node blocks")
         starts = indptr[3 * r[:, None] + np.arange(3)]  # (R, 3)
         owner = np.repeat(np.arange(len(r)), length[3 * r])
         offsets = np.arange(len(owner)) - np.repeat(
@@ -248,10 +244,10 @@ class RotationPlan:
 
     indptr: NDArray[np.int32]
     indices: NDArray[np.int32]
-    rows: NDArray[np.int64] | None = None  # None: the pattern has partial blocks
-    row_nodes: NDArray[np.int64] | None = None
-    cols: NDArray[np.int64] | None = None
-    col_nodes: NDArray[np.int64] | None = None
+    rows: NDArray[np.int64]
+    row_nodes: NDArray[np.int64]
+    cols: NDArray[np.int64]
+    col_nodes: NDArray[np.int64]
 
     def fits(self, K: sparse.csr_matrix) -> bool:
         """Whether ``K`` has this pattern."""

@@ -41,6 +41,7 @@ from numpy.typing import NDArray
 from scipy import sparse
 
 from fem.contract.plates import penetration
+from fem.engine.assembly import assemble
 
 #: How far a unit vector may be from unit length or orthogonality.
 UNIT_TOLERANCE = 1e-9
@@ -123,7 +124,7 @@ class RigidPlate:
         self.accepted_force = np.zeros(len(self.nodes))
         self.anchor = np.zeros((len(self.nodes), 2))
         self.tangents = np.stack([np.cross(self.axis, self.normal), self.axis])  # (2, 3): B
-        self._dofs = 3 * self.nodes[:, None] + np.arange(3)  # (M, 3)
+        self.dofs = 3 * self.nodes[:, None] + np.arange(3)  # (M, 3)
 
     @property
     def frame(self) -> NDArray[np.float64]:
@@ -203,15 +204,18 @@ class RigidPlate:
         _, f1, _ = friction_mollifier(r)
         # f1(r) / |s| -> 2 / eps as the slip vanishes.
         scale = np.where(r > 1e-12, f1 / np.maximum(norm, 1e-300), 2.0 / eps)
-        np.add.at(f, self._dofs, ((limit * scale)[:, None] * s) @ self.tangents)
+        np.add.at(f, self.dofs, ((limit * scale)[:, None] * s) @ self.tangents)
         return f
 
     def tangent(self, x: NDArray) -> sparse.csr_matrix:
-        """``d2D/dx2`` (3N, 3N): 3 x 3 blocks ``B^T mu lambda [f1'/eps n n^T + f1/|s| (I - n n^T)] B``
-        with ``n`` the slip direction in the plate plane."""
-        n = 3 * self.n_nodes
+        """``d2D/dx2`` (3N, 3N), Pa mm."""
+        return assemble(3 * self.n_nodes, self.dofs, self.tangent_blocks(x))
+
+    def tangent_blocks(self, x: NDArray) -> NDArray[np.float64]:
+        """Node blocks (M, 3, 3) of ``d2D/dx2`` over `dofs`: ``B^T mu lambda [f1'/eps n n^T +
+        f1/|s| (I - n n^T)] B`` with ``n`` the slip direction in the plate plane, Pa mm."""
         if self.friction == 0:
-            return sparse.csr_matrix((n, n))
+            return np.zeros((len(self.nodes), 3, 3))
         s, norm, limit = self._slip(x)
         eps = self.slip_regularization
         r = norm / eps
@@ -224,7 +228,4 @@ class RigidPlate:
         blocks = limit[:, None, None] * (
             radial[:, None, None] * nn + hoop[:, None, None] * (np.eye(2) - nn)
         )
-        blocks = np.einsum("ai,mab,bj->mij", self.tangents, blocks, self.tangents)  # (M, 3, 3)
-        rows = np.repeat(self._dofs, 3, axis=1).ravel()
-        cols = np.tile(self._dofs, (1, 3)).ravel()
-        return sparse.csr_matrix((blocks.ravel(), (rows, cols)), shape=(n, n))
+        return np.einsum("ai,mab,bj->mij", self.tangents, blocks, self.tangents)  # (M, 3, 3)

@@ -40,6 +40,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import sparse
 
+from fem.engine.assembly import assemble
+
 
 def membrane_frame(points: NDArray, triangles: NDArray) -> tuple[NDArray, NDArray]:
     """Reference shape gradients in each triangle's own orthonormal in-plane frame.
@@ -93,14 +95,8 @@ class SkinMembrane:
         self.points = np.asarray(self.points, float)
         self.triangles = np.asarray(self.triangles, np.int64)
         self.grads, self.areas = membrane_frame(self.points, self.triangles)
-        n_tri, n = len(self.triangles), len(self.points)
-        self.dofs = (3 * self.triangles[:, :, None] + np.arange(3)).reshape(n_tri, 9)
-        keys = (
-            np.repeat(self.dofs, 9, axis=1).ravel() * (3 * n) + np.tile(self.dofs, (1, 9)).ravel()
-        )
-        unique, self._scatter = np.unique(keys, return_inverse=True)
-        self._pattern = (unique // (3 * n), unique % (3 * n))
-        self._ndof = 3 * n
+        self.dofs = (3 * self.triangles[:, :, None] + np.arange(3)).reshape(-1, 9)
+        self._ndof = 3 * len(self.points)
 
     def _kinematics(self, x: NDArray) -> tuple[NDArray, NDArray]:
         Fs = np.swapaxes(x[self.triangles], 1, 2) @ self.grads  # (S, 3, 2)
@@ -163,13 +159,17 @@ class SkinMembrane:
 
     def tangent(self, x: NDArray) -> sparse.csr_matrix:
         """``d2W/dx2`` as CSR (3N, 3N), Pa mm."""
+        return assemble(self._ndof, self.dofs, self.tangent_blocks(x))
+
+    def tangent_blocks(self, x: NDArray) -> NDArray[np.float64]:
+        """Triangle blocks (S, 9, 9) of the tangent over `dofs`, Pa mm."""
         Fs, C = self._kinematics(x)
         _, S, CC = self.response(C)
-        geometric = np.einsum("saj,sjk,sbk->sab", self.grads, S, self.grads)  # (S, 3, 3)
+        geometric = self.grads @ S @ np.swapaxes(self.grads, 1, 2)  # (S, 3, 3): G_a . S G_b
         # Material part: d(E_ab)/dx_{n,i} = sym(F_ia G_nb); with CC's minor symmetry use F_ia G_nb.
-        FG = np.einsum("sia,snb->sniab", Fs, self.grads)  # (S, 3 nodes, 3 dims, 2, 2)
-        Km = np.einsum("sniab,sabcd,smkcd->snimk", FG, CC, FG)
-        Ke = Km + geometric[:, :, None, :, None] * np.eye(3)[None, None, :, None, :]
+        FG = (self.grads[:, :, None, None, :] * Fs[:, None, :, :, None]).reshape(-1, 9, 4)
+        Ke = (FG @ CC.reshape(-1, 4, 4) @ np.swapaxes(FG, 1, 2)).reshape(-1, 3, 3, 3, 3)
+        for i in range(3):
+            Ke[:, :, i, :, i] += geometric
         Ke *= self.areas[:, None, None, None, None]
-        data = np.bincount(self._scatter, weights=Ke.ravel(), minlength=len(self._pattern[0]))
-        return sparse.csr_matrix((data, self._pattern), shape=(self._ndof, self._ndof))
+        return Ke.reshape(-1, 9, 9)
