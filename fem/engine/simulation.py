@@ -45,6 +45,7 @@ from fem.engine.boundary import (
 )
 from fem.engine.constraints import HeldDirections, NodeFrames, equilibrium_path
 from fem.engine.contact import RigidPlate
+from fem.engine.linear import BACKENDS
 from fem.engine.material import lame_parameters
 from fem.engine.membrane import SkinMembrane
 from fem.engine.solver import (
@@ -408,6 +409,9 @@ class Simulation:
     constraints : str, optional
         A file of held nodes and directions (`fem.engine.boundary.read_constraints`), added to
         the chest wall's.
+    linear_solver : {"auto", "superlu", "pardiso"}
+        Newton's sparse factorization (`fem.engine.linear`): ``auto`` takes MKL PARDISO for
+        real-size meshes when the optional ``mkl`` wheel is installed, SuperLU otherwise.
     """
 
     materials: Mapping[str, Material | Mapping[str, Any]] = field(
@@ -425,6 +429,7 @@ class Simulation:
     averaging: str = "nodal"
     chest_wall: str = "sliding"
     constraints: str | None = None
+    linear_solver: str = "auto"
 
     def __post_init__(self) -> None:
         self.materials = {
@@ -451,6 +456,7 @@ class Simulation:
             "angle": (0 <= self.angle <= 90, "lie in [0, 90] degrees"),
             "averaging": (self.averaging in ("nodal", "element"), "be 'nodal' or 'element'"),
             "chest_wall": (self.chest_wall in CHEST_WALLS, f"be one of {CHEST_WALLS}"),
+            "linear_solver": (self.linear_solver in BACKENDS, f"be one of {BACKENDS}"),
             "unloaded_gravity": (len(self.unloaded_gravity) == 3, "be 3 numbers (Pa/mm)"),
             "compression_gravity": (len(self.compression_gravity) == 3, "be 3 numbers (Pa/mm)"),
         }
@@ -505,6 +511,7 @@ class Simulation:
             chest=self.chest_wall,
             held=held,
             sets=sets,
+            settings=replace(DEFAULT_NEWTON, linear_solver=self.linear_solver),
         )
         seconds: dict[str, float] = {}
         unloaded = np.zeros((0, traj.n_nodes, 3))
@@ -550,6 +557,7 @@ class Simulation:
                 "averaging": self.averaging,
                 "chest_wall": self.chest_wall,
                 "constraints": self.constraints,
+                "linear_solver": self.linear_solver,
                 "plate_extent_mm": [float(e) if np.isfinite(e) else None for e in schedule.extent],
                 "compression_ratio": float(result.compression_ratio[-1]),
                 "compressed_thickness_mm": schedule.gap(1.0),

@@ -21,6 +21,7 @@ from scipy.linalg import lu_factor, lu_solve
 from scipy.sparse.linalg import LinearOperator, cg, splu
 
 from fem.engine.assembly import HyperelasticBody, Model
+from fem.engine.linear import Pardiso, resolve_backend, superlu
 
 #: Body force of gravity for water-like tissue: rho g = 1000 kg/m^3 * 9.81 m/s^2 = 9.81e-6 N/mm^3,
 #: i.e. 9.81 in the solver's force unit (Pa mm^2 = 1e-6 N) per mm^3.
@@ -87,6 +88,10 @@ class NewtonSettings:
         the line search would cut such a step, it assembles the tangent and factorizes
         afresh. 0 disables the reuse (0.5 against 0: 6 instead of 101 tangents and half the
         time for a breast's unloaded state, positions within 1e-6 mm).
+    linear_solver : {"auto", "superlu", "pardiso"}
+        Sparse factorization (`fem.engine.linear`): ``auto`` is MKL PARDISO from
+        `fem.engine.linear.PARDISO_FROM` DOFs on when the optional ``mkl`` wheel is installed,
+        SuperLU otherwise.
     """
 
     tolerance: float = 1e-6
@@ -97,6 +102,7 @@ class NewtonSettings:
     friction_tolerance: float = 1e-3
     friction_updates: int = 10
     max_contraction: float = 0.5
+    linear_solver: str = "auto"
 
 
 class ReusedFactorization:
@@ -114,15 +120,22 @@ class ReusedFactorization:
     tangent has drifted), the next solve factorizes afresh; when it does not reach ``rtol``
     within ``max_iterations``, this one does.
 
-    SuperLU with a minimum-degree ordering on K + K^T and no pivoting (the tangents are
-    symmetric and, where Newton uses them, positive definite: 26 % less fill than partial
-    pivoting on a breast), with partial pivoting as the fallback.
+    The factorizations are SuperLU's or MKL PARDISO's (``backend``, `fem.engine.linear`:
+    ``auto`` picks by size); PARDISO keeps the analysis of the pattern, which does not change
+    along a load path.
     """
 
     def __init__(
-        self, rtol: float = 1e-10, max_iterations: int = 30, refactor_after: int = 15
+        self,
+        rtol: float = 1e-10,
+        max_iterations: int = 30,
+        refactor_after: int = 15,
+        backend: str = "auto",
     ) -> None:
         self.rtol, self.max_iterations, self.refactor_after = rtol, max_iterations, refactor_after
+        resolve_backend(backend, 0)  # refuse an unknown one now
+        self.backend = backend
+        self._pardiso: Pardiso | None = None
         self.lu = None
         self.keep: NDArray[np.bool_] | None = None  # the DOFs free in the factor
         self.columns: dict[int, NDArray] = {}  # DOF j -> A0^-1 e_j
@@ -172,21 +185,16 @@ class ReusedFactorization:
             self.stale = iterations > self.refactor_after
             if info == 0:
                 return x
-        self.lu, self.keep, self.columns = factorize(A), keep.copy(), {}
+        self.lu, self.keep, self.columns = self._factorize(A), keep.copy(), {}
         self.stale = False
         self.factorizations += 1
         return self.lu.solve(b)
 
-
-def factorize(K: sparse.spmatrix) -> sparse.linalg.SuperLU:
-    """Sparse LU of a symmetric matrix: no pivoting first, partial pivoting if that fails."""
-    K = K.tocsc()
-    try:
-        return splu(
-            K, permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True, "DiagPivotThresh": 0.0}
-        )
-    except RuntimeError:  # a zero pivot: indefinite or singular without pivoting
-        return splu(K, permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True})
+    def _factorize(self, A: sparse.spmatrix):  # SuperLU or PardisoFactor: .solve, .shape
+        if resolve_backend(self.backend, A.shape[0]) == "superlu":
+            return superlu(A)
+        self._pardiso = self._pardiso or Pardiso()
+        return self._pardiso.factorize(A)
 
 
 #: Default settings, shared (the dataclass is frozen).
@@ -308,7 +316,7 @@ def newton(
     if lower is not None:
         flat = np.clip(flat, lower, upper)
         x = flat.reshape(x.shape)
-    linear = linear or ReusedFactorization()
+    linear = linear or ReusedFactorization(backend=settings.linear_solver)
 
     def potential(y: NDArray) -> float:
         return body.energy(y) - f_ext @ y.reshape(-1)
@@ -423,7 +431,7 @@ def load_ramp(
     x = np.array(x0, float)
     lam, increment = 0.0, float(record[0])
     velocity = np.zeros_like(x)  # dx/dlambda of the last increment: the predictor
-    linear = ReusedFactorization()
+    linear = ReusedFactorization(backend=settings.linear_solver)
     out = []
     for target in record:
         cutbacks = 0

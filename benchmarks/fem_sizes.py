@@ -1,0 +1,157 @@
+"""Real-size meshes: one breast meshed at several sizes through both FE steps.
+
+    python benchmarks/fem_sizes.py --breast P0001_L --elements 2250 10000 40000 100000 \
+        --out results/fem/sizes.json
+
+The breast's segmentation (the cohort's generator) is meshed with ``target_elements`` set to
+each size (`fem.breasts.mesh.Mesher`, tolerance a ninth of it) and simulated with the paper's
+settings (`fem.engine.simulation.Simulation`: 100 unloaded-state steps, 70 compression steps
+to the breast's target ratio, friction 0.25, skin membrane, sliding chest wall, cc view) and
+``--linear-solver``. Each size runs in a fresh process, so its peak resident memory is its
+own; Newton iterations, tangent assemblies and factorizations are counted by wrapping the
+engine's functions. Prints a table and the exponent ``b`` of the fit ``time = a n^b`` over the
+sizes (n: tetrahedra).
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import resource
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+from hydra.utils import instantiate
+from omegaconf import OmegaConf
+
+import fem.engine.solver as solver
+from fem import CONFIG_DIR
+from fem.contract.atomic import write_json
+from fem.engine.constraints import FramedModel
+from fem.engine.linear import resolve_backend
+from fem.engine.simulation import Simulation, SimulationFailed
+
+
+def counted(counts: dict[str, int]) -> None:
+    """Wrap Newton, the framed tangent and the factorization so that they count into ``counts``."""
+    newton, tangent, factorize = (
+        solver.newton,
+        FramedModel.tangent,
+        solver.ReusedFactorization._factorize,
+    )
+
+    def newton_counted(*args, **kwargs):
+        out = newton(*args, **kwargs)
+        counts["newton_iterations"] += out[1]
+        return out
+
+    def tangent_counted(self, y):
+        counts["tangents"] += 1
+        return tangent(self, y)
+
+    def factorize_counted(self, A):
+        counts["factorizations"] += 1
+        return factorize(self, A)
+
+    solver.newton = newton_counted
+    FramedModel.tangent = tangent_counted
+    solver.ReusedFactorization._factorize = factorize_counted
+
+
+def run(name: str, elements: int, linear_solver: str) -> dict:
+    """Mesh ``name`` at about ``elements`` tetrahedra and simulate both steps (in a worker)."""
+    generator = instantiate(OmegaConf.load(Path(CONFIG_DIR) / "generator" / "default.yaml"))
+    mesher = OmegaConf.load(Path(CONFIG_DIR) / "mesher" / "default.yaml")
+    mesher.target_elements, mesher.tolerance = elements, max(elements // 9, 250)
+    volume, meta = generator.breast(int(name[1:5]), name[-1])
+    traj = instantiate(mesher)(volume, meta)
+    counts = {"newton_iterations": 0, "tangents": 0, "factorizations": 0}
+    counted(counts)
+    row = {
+        "breast": name,
+        "target_elements": elements,
+        "tetrahedra": traj.n_cells,
+        "dofs": 3 * traj.n_nodes,
+        "linear_solver": resolve_backend(linear_solver, 3 * traj.n_nodes),
+    }
+    t0 = time.perf_counter()
+    try:
+        result = Simulation(linear_solver=linear_solver)(traj)
+    except SimulationFailed as exc:
+        return {**row, "failed": str(exc), "seconds": time.perf_counter() - t0, **counts}
+    info = result.metadata["simulation"]
+    return {
+        **row,
+        "seconds": time.perf_counter() - t0,
+        "unloaded_s": info["seconds"]["unloaded"],
+        "compression_s": info["seconds"]["compression"],
+        **counts,
+        "peak_memory_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        "volume_change": info["volume_change"],
+        "min_element_volume_ratio": info["min_element_volume_ratio"],
+        "compression_ratio": info["compression_ratio"],
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument("--breast", default="P0001_L")
+    ap.add_argument("--elements", nargs="+", type=int, default=[2250, 10000, 40000, 100000])
+    ap.add_argument("--linear-solver", default="auto", help="auto | superlu | pardiso")
+    ap.add_argument("--out", type=Path, default=None)
+    args = ap.parse_args()
+    rows = []
+    print(
+        "| tetrahedra | DOFs | solver | unloaded (s) | compression (s) | both (s) | Newton "
+        "iterations | tangents | factorizations | peak memory (MB) | volume change |"
+    )
+    print("| --- " * 11 + "|")
+    for elements in args.elements:
+        with ProcessPoolExecutor(max_workers=1, max_tasks_per_child=1) as pool:
+            row = pool.submit(run, args.breast, elements, args.linear_solver).result()
+        rows.append(row)
+        if "failed" in row:
+            print(f"| {row['tetrahedra']} | failed after {row['seconds']:.0f} s: {row['failed']} |")
+            continue
+        print(
+            f"| {row['tetrahedra']} | {row['dofs']} | {row['linear_solver']} "
+            f"| {row['unloaded_s']:.1f} | {row['compression_s']:.1f} | {row['seconds']:.1f} "
+            f"| {row['newton_iterations']} | {row['tangents']} | {row['factorizations']} "
+            f"| {row['peak_memory_mb']:.0f} | {100 * row['volume_change']:+.2f} % |",
+            flush=True,
+        )
+    done = [r for r in rows if "failed" not in r]
+    exponent = None
+    if len(done) >= 2:
+        exponent = float(
+            np.polyfit(
+                np.log([r["tetrahedra"] for r in done]), np.log([r["seconds"] for r in done]), 1
+            )[0]
+        )
+        print(f"\ntime ~ n^{exponent:.2f} (n: tetrahedra, {len(done)} sizes)")
+    if args.out:
+        write_json(
+            {
+                "machine": platform.processor() or platform.machine(),
+                "command": "python benchmarks/fem_sizes.py "
+                + " ".join(
+                    [
+                        f"--breast {args.breast}",
+                        "--elements",
+                        *map(str, args.elements),
+                        f"--linear-solver {args.linear_solver}",
+                    ]
+                ),
+                "exponent": exponent,
+                "rows": rows,
+            },
+            args.out,
+        )
+
+
+if __name__ == "__main__":
+    main()
