@@ -115,6 +115,15 @@ def element_blocks(
     return K
 
 
+def same_pattern(pattern: tuple[NDArray, NDArray] | None, K: sparse.csr_matrix) -> bool:
+    """Whether the CSR matrix ``K`` has the pattern ``(indptr, indices)`` (None: no pattern)."""
+    return (
+        pattern is not None
+        and np.array_equal(pattern[0], K.indptr)
+        and np.array_equal(pattern[1], K.indices)
+    )
+
+
 class BlockPattern:
     """A fixed CSR pattern (n, n) holding dense blocks over sets of DOFs, and where each set's
     entries go: parts scatter their element blocks with one ``np.bincount`` (the
@@ -157,7 +166,7 @@ class BlockPattern:
     def add(self, data: NDArray, M: sparse.csr_matrix) -> None:
         """Add a CSR matrix whose entries lie in the pattern to ``data``."""
         m = self._mapped
-        if m is None or not (np.array_equal(m[0], M.indptr) and np.array_equal(m[1], M.indices)):
+        if m is None or not same_pattern(m[:2], M):
             rows = np.repeat(np.arange(self.n, dtype=np.int64), np.diff(M.indptr))
             where = np.searchsorted(self._keys_all, rows * self.n + M.indices)
             m = self._mapped = (M.indptr.copy(), M.indices.copy(), where)

@@ -26,7 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import sparse
 
-from fem.engine.assembly import Model
+from fem.engine.assembly import Model, same_pattern
 from fem.engine.contact import RigidPlate
 from fem.engine.solver import NewtonSettings, load_ramp
 
@@ -251,7 +251,7 @@ class RotationPlan:
 
     def fits(self, K: sparse.csr_matrix) -> bool:
         """Whether ``K`` has this pattern."""
-        return np.array_equal(self.indptr, K.indptr) and np.array_equal(self.indices, K.indices)
+        return same_pattern((self.indptr, self.indices), K)
 
 
 class FramedModel:

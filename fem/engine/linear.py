@@ -13,8 +13,8 @@ The tangents are symmetric; held DOFs keep their rows and columns with only the 
   iterative refinement; the ordering and symbolic analysis are done once per pattern
   (PARDISO phase 11) and reused by every later factorization (phase 22).
 
-`factorize` picks PARDISO from `PARDISO_FROM` DOFs on when MKL can be loaded, SuperLU
-otherwise (docs/benchmarks.md, "Real-size meshes").
+`resolve_backend` picks PARDISO from `PARDISO_FROM` DOFs on when MKL can be loaded, SuperLU
+otherwise; `fem.engine.solver.ReusedFactorization` uses it (docs/benchmarks.md, "Real-size meshes").
 """
 
 from __future__ import annotations
@@ -32,7 +32,9 @@ from numpy.typing import NDArray
 from scipy import sparse
 from scipy.sparse.linalg import splu
 
-#: DOFs from which `factorize` prefers PARDISO (when MKL is installed).
+from fem.engine.assembly import same_pattern
+
+#: DOFs from which ``auto`` prefers PARDISO (when MKL is installed).
 PARDISO_FROM = 5000
 
 BACKENDS = ("auto", "superlu", "pardiso")
@@ -69,6 +71,50 @@ def mkl_pardiso() -> ctypes._CFuncPtr | None:
     return None
 
 
+def pardiso_phase(
+    function: ctypes._CFuncPtr,
+    handle: NDArray,
+    iparm: NDArray,
+    phase: int,
+    upper: sparse.csr_matrix | None = None,
+    b: NDArray | None = None,
+) -> NDArray | None:
+    """One call of MKL's ``pardiso`` (real symmetric indefinite) on the instance ``handle``
+    (64 pointers) with the upper triangle ``upper`` (int32 CSR, zero-based); returns the
+    solution of ``b`` (n,) or (n, k) for phase 33, None otherwise. Phase -1 (release) needs no
+    matrix."""
+    n = 0 if upper is None else upper.shape[0]
+    rhs = np.zeros((1, n)) if b is None else np.asarray(b, float).reshape(n, -1).T.copy()
+    x = np.zeros_like(rhs)
+    error = ctypes.c_int32(0)
+    int_p = ctypes.POINTER(ctypes.c_int32)
+
+    def i32(v: int) -> ctypes._Pointer:
+        return ctypes.byref(ctypes.c_int32(v))
+
+    function(
+        handle.ctypes.data_as(ctypes.POINTER(ctypes.c_int64)),
+        i32(1),  # maxfct
+        i32(1),  # mnum
+        i32(Pardiso.MTYPE),
+        i32(phase),
+        i32(n),
+        None if upper is None else upper.data.ctypes.data,
+        None if upper is None else upper.indptr.ctypes.data_as(int_p),
+        None if upper is None else upper.indices.ctypes.data_as(int_p),
+        None,  # perm
+        i32(rhs.shape[0]),  # nrhs
+        iparm.ctypes.data_as(int_p),
+        i32(0),  # msglvl
+        rhs.ctypes.data,
+        x.ctypes.data,
+        ctypes.byref(error),
+    )
+    if error.value:
+        raise RuntimeError(f"PARDISO phase {phase} failed with error {error.value}")
+    return None if b is None else x.T.reshape(np.shape(b))
+
+
 class Pardiso:
     """One MKL PARDISO instance (real symmetric indefinite, ``mtype = -2``) for a sequence of
     matrices: the analysis of a pattern is kept until another pattern comes.
@@ -95,65 +141,10 @@ class Pardiso:
         self._pattern: tuple[NDArray, NDArray] | None = None
         self._upper: sparse.csr_matrix | None = None
         self.analyses = 0
-        weakref.finalize(self, Pardiso._free, self._pardiso, self._handle, self._iparm)
-
-    @staticmethod
-    def _free(pardiso: ctypes._CFuncPtr, handle: NDArray, iparm: NDArray) -> None:
-        """Phase -1 on an instance's memory pointers (a no-op when nothing is allocated)."""
-        zero, minus_one, error = ctypes.c_int32(0), ctypes.c_int32(-1), ctypes.c_int32(0)
-        one, mtype = ctypes.c_int32(1), ctypes.c_int32(Pardiso.MTYPE)
-        int_p = ctypes.POINTER(ctypes.c_int32)
-        pardiso(
-            handle.ctypes.data_as(ctypes.POINTER(ctypes.c_int64)),
-            ctypes.byref(one),
-            ctypes.byref(one),
-            ctypes.byref(mtype),
-            ctypes.byref(minus_one),
-            ctypes.byref(zero),
-            None,
-            None,
-            None,
-            None,
-            ctypes.byref(one),
-            iparm.ctypes.data_as(int_p),
-            ctypes.byref(zero),
-            None,
-            None,
-            ctypes.byref(error),
-        )
+        weakref.finalize(self, pardiso_phase, self._pardiso, self._handle, self._iparm, -1)
 
     def _call(self, phase: int, b: NDArray | None = None) -> NDArray | None:
-        A = self._upper
-        n = A.shape[0]
-        rhs = np.zeros((1, n)) if b is None else np.asarray(b, float).reshape(n, -1).T.copy()
-        x = np.zeros_like(rhs)
-        error = ctypes.c_int32(0)
-        one = ctypes.c_int32(1)
-
-        def i32(v: int) -> ctypes._Pointer:
-            return ctypes.byref(ctypes.c_int32(v))
-
-        self._pardiso(
-            self._handle.ctypes.data_as(ctypes.POINTER(ctypes.c_int64)),
-            ctypes.byref(one),
-            ctypes.byref(one),
-            i32(self.MTYPE),
-            i32(phase),
-            i32(n),
-            A.data.ctypes.data,
-            A.indptr.ctypes.data_as(ctypes.POINTER(ctypes.c_int32)),
-            A.indices.ctypes.data_as(ctypes.POINTER(ctypes.c_int32)),
-            None,
-            i32(rhs.shape[0]),
-            self._iparm.ctypes.data_as(ctypes.POINTER(ctypes.c_int32)),
-            i32(0),
-            rhs.ctypes.data,
-            x.ctypes.data,
-            ctypes.byref(error),
-        )
-        if error.value:
-            raise RuntimeError(f"PARDISO phase {phase} failed with error {error.value}")
-        return None if b is None else x.T.reshape(np.shape(b))
+        return pardiso_phase(self._pardiso, self._handle, self._iparm, phase, self._upper, b)
 
     def factorize(self, K: sparse.spmatrix) -> PardisoFactor:
         """Factorize a symmetric ``K``; the analysis is redone only for a new pattern."""
@@ -161,12 +152,8 @@ class Pardiso:
         upper.sort_indices()
         upper.indptr = upper.indptr.astype(np.int32)
         upper.indices = upper.indices.astype(np.int32)
-        same = self._pattern is not None and (
-            np.array_equal(self._pattern[0], upper.indptr)
-            and np.array_equal(self._pattern[1], upper.indices)
-        )
         self._upper = upper
-        if not same:
+        if not same_pattern(self._pattern, upper):
             if self._pattern is not None:
                 self._call(-1)  # release the old analysis
             self._call(11)
