@@ -366,11 +366,18 @@ class FramedModel:
                 plate.normal_force = force
         return change / scale if scale > 0 else 0.0
 
-    def accept(self, y: NDArray, gradient: NDArray) -> None:
-        """Tell the plates that ``y`` is a converged load step (friction's slip anchors)."""
+    def accept(self, y: NDArray, gradient: NDArray, increment: float = 0.0) -> None:
+        """Tell the plates that ``y`` is a converged load step, reached by a load
+        ``increment`` (friction's slip anchors and normal-force rates)."""
         x = self._x(y)
         for plate, force in zip(self.plates, self.contact_forces(y, gradient), strict=True):
-            plate.accept(x, force)
+            plate.accept(x, force, increment)
+
+    def predict(self, increment: float) -> None:
+        """Extrapolate the plates' normal forces ``increment`` past the last accepted step
+        (`fem.engine.contact.RigidPlate.predict`)."""
+        for plate in self.plates:
+            plate.predict(increment)
 
     def reject(self) -> None:
         """A load step failed: back to the normal forces of the last converged one."""

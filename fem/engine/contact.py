@@ -101,6 +101,7 @@ class RigidPlate:
     extent: tuple[float, float] = (np.inf, np.inf)
     normal_force: NDArray = field(init=False, repr=False)
     accepted_force: NDArray = field(init=False, repr=False)
+    force_rate: NDArray = field(init=False, repr=False)
     anchor: NDArray = field(init=False, repr=False)
     front: NDArray | None = field(init=False, repr=False, default=None)
 
@@ -122,6 +123,7 @@ class RigidPlate:
         self.nodes = np.asarray(self.nodes, np.int64)
         self.normal_force = np.zeros(len(self.nodes))
         self.accepted_force = np.zeros(len(self.nodes))
+        self.force_rate = np.zeros(len(self.nodes))
         self.anchor = np.zeros((len(self.nodes), 2))
         self.tangents = np.stack([np.cross(self.axis, self.normal), self.axis])  # (2, 3): B
         self.dofs = 3 * self.nodes[:, None] + np.arange(3)  # (M, 3)
@@ -157,9 +159,10 @@ class RigidPlate:
         (negative: inside the plate), (M,)."""
         return -penetration(x[self.nodes], self.frame)
 
-    def accept(self, x: NDArray, normal_force: NDArray) -> None:
+    def accept(self, x: NDArray, normal_force: NDArray, increment: float = 0.0) -> None:
         """Start a new load step from the converged ``x``: the normal forces (M,) (Pa mm^2, the
-        multipliers of the bounds) and the friction's anchors.
+        multipliers of the bounds), their rate over the load ``increment`` that led to ``x``
+        (`predict`'s slope; 0: none) and the friction's anchors.
 
         An anchor is where the node's tangential spring is unstretched (`friction_mollifier`:
         it saturates at the Coulomb force over a slip of ``eps``). A node that slipped farther
@@ -168,8 +171,11 @@ class RigidPlate:
         it, so stick accumulates over load steps and the result does not depend on how finely
         the load is stepped; a node off the plate has none.
         """
-        self.normal_force = np.asarray(normal_force, float)
-        self.accepted_force = self.normal_force.copy()
+        normal_force = np.asarray(normal_force, float)
+        if increment > 0:
+            self.force_rate = (normal_force - self.accepted_force) / increment
+        self.normal_force = normal_force
+        self.accepted_force = normal_force.copy()
         s = x[self.nodes] @ self.tangents.T
         d = s - self.anchor
         norm = np.linalg.norm(d, axis=1)
@@ -178,6 +184,14 @@ class RigidPlate:
         self.anchor[slipped] = s[slipped] - eps * d[slipped] / norm[slipped, None]
         free = self.normal_force <= 0
         self.anchor[free] = s[free]
+
+    def predict(self, increment: float) -> None:
+        """The friction's normal forces for the next load step, ``increment`` past the
+        accepted one: extrapolated along their last rate (`accept`), never tensile. The
+        step's own equilibrium corrects them (`fem.engine.constraints.FramedModel.
+        update_friction`); starting from the lagged forces instead cost one more Newton solve
+        per load step in contact."""
+        self.normal_force = np.maximum(self.accepted_force + increment * self.force_rate, 0.0)
 
     # -- friction: energy, force, tangent ---------------------------------------------------
     def _slip(self, x: NDArray) -> tuple[NDArray, NDArray, NDArray]:

@@ -397,6 +397,21 @@ def newton(
     raise SolverError(f"Newton did not converge in {settings.max_iterations} iterations")
 
 
+def extrapolate(path: Sequence[tuple[float, NDArray]], load: float) -> NDArray[np.float64]:
+    """The Lagrange polynomial through the equilibria ``path`` ((load factor, positions (N, 3))
+    pairs, at most three: constant, linear or quadratic) evaluated at ``load``: the predictor
+    of a load step (quadratic instead of linear: 235 instead of 309 Newton iterations for a
+    breast's 100 unloaded-state steps, P0153_L)."""
+    guess = np.zeros_like(path[-1][1])
+    for i, (t_i, x_i) in enumerate(path):
+        weight = 1.0
+        for j, (t_j, _) in enumerate(path):
+            if j != i:
+                weight *= (load - t_j) / (t_i - t_j)
+        guess += weight * x_i
+    return guess
+
+
 def load_ramp(
     body: HyperelasticBody | Model,
     x0: NDArray,
@@ -430,20 +445,22 @@ def load_ramp(
     """
     x = np.array(x0, float)
     lam, increment = 0.0, float(record[0])
-    velocity = np.zeros_like(x)  # dx/dlambda of the last increment: the predictor
+    path = [(lam, x)]  # the last three equilibria: the predictor
     linear = ReusedFactorization(backend=settings.linear_solver)
     out = []
     for target in record:
         cutbacks = 0
         while lam < target - 1e-12:
             nxt = min(lam + increment, target)
-            guess = x + (nxt - lam) * velocity
+            guess = extrapolate(path, nxt)
             if body.min_jacobian(guess) <= settings.min_jacobian:
                 guess = x.copy()
-            if prescribed is not None:
-                guess.reshape(-1)[~free] = prescribed(nxt).reshape(-1)[~free]
+            fixed = x if prescribed is None else prescribed(nxt)  # exactly, not extrapolated
+            guess.reshape(-1)[~free] = fixed.reshape(-1)[~free]
             if configure is not None:
                 configure(nxt)
+            if hasattr(body, "predict"):  # e.g. the friction's normal forces
+                body.predict(nxt - lam)
             try:
                 x_new, iterations, gradient = newton(body, guess, free, load(nxt), settings, linear)
                 for _ in range(
@@ -463,9 +480,9 @@ def load_ramp(
                     ) from exc
                 continue
             if hasattr(body, "accept"):
-                body.accept(x_new, gradient)
-            velocity = (x_new - x) / (nxt - lam)
+                body.accept(x_new, gradient, nxt - lam)
             x, lam = x_new, nxt
+            path = [*path[-2:], (lam, x)]
             if iterations <= 4:
                 increment *= 1.5
         out.append(x.copy())
