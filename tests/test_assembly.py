@@ -3,10 +3,11 @@
 import numpy as np
 import pytest
 from conftest import assert_exact_derivatives
+from scipy import sparse
 
 from fem.breasts.mesh import bcc_lattice, compact_mesh
 from fem.contract.quality import boundary_faces
-from fem.engine.assembly import HyperelasticBody, Model, skfem_tangent
+from fem.engine.assembly import BlockPattern, HyperelasticBody, Model, skfem_tangent
 from fem.engine.material import lame_parameters, neo_hookean_pk1
 from fem.engine.membrane import SkinMembrane
 
@@ -95,3 +96,18 @@ def test_model_tangent_in_one_pattern_equals_the_sum_of_its_parts(block):
     assert abs(K - expected).max() <= 1e-12 * abs(expected).max()
     assert K.has_sorted_indices and np.all(np.diff(K.indptr)[::3] % 3 == 0)
     assert model.tangent(x + 0.1).nnz == K.nnz  # the pattern is fixed
+
+
+def test_block_pattern_union_of_sets_and_extra():
+    """A pattern holds every set's blocks and the extra entries, whether or not the extra
+    matrix already covers the blocks (nodal averaging's ``B^T B`` does)."""
+    dofs = np.array([[0, 1], [4, 5]])
+    inside = sparse.csr_matrix(np.ones((6, 6)))
+    outside = sparse.csr_matrix(([1.0], ([2], [3])), shape=(6, 6))
+    for extra, expected in ((inside, 36), (outside, 9)):
+        pattern = BlockPattern(6, [dofs], extra)
+        data = np.zeros(pattern.nnz)
+        pattern.scatter(data, 0, np.ones((2, 2, 2)))
+        K = pattern.matrix(data).toarray()
+        assert pattern.nnz == expected
+        assert K[0, 1] == K[5, 4] == 1.0 and K[0, 4] == 0.0 and K.sum() == 8.0
