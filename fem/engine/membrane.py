@@ -97,6 +97,7 @@ class SkinMembrane:
         self.grads, self.areas = membrane_frame(self.points, self.triangles)
         self.dofs = (3 * self.triangles[:, :, None] + np.arange(3)).reshape(-1, 9)
         self._ndof = 3 * len(self.points)
+        self._cache: tuple[NDArray, tuple[NDArray, NDArray, NDArray]] | None = None
 
     def _kinematics(self, x: NDArray) -> tuple[NDArray, NDArray]:
         Fs = np.swapaxes(x[self.triangles], 1, 2) @ self.grads  # (S, 3, 2)
@@ -145,15 +146,23 @@ class SkinMembrane:
             CC[slack] = 0.0
         return w, S, CC
 
+    def _stress(self, x: NDArray) -> tuple[NDArray, NDArray, NDArray]:
+        """``F_s`` (S, 3, 2), energy density (S,) and stress (S, 2, 2) at ``x``; the last ones
+        are kept (the line search's energy and the next iteration's force share a state)."""
+        if self._cache is not None and np.array_equal(self._cache[0], x):
+            return self._cache[1]
+        Fs, C = self._kinematics(x)
+        w, S, _ = self.response(C, tangent=False)
+        self._cache = np.array(x, float), (Fs, w, S)
+        return Fs, w, S
+
     def energy(self, x: NDArray) -> float:
         """Stored energy, Pa mm^3."""
-        _, C = self._kinematics(x)
-        return float(self.areas @ self.response(C, tangent=False)[0])
+        return float(self.areas @ self._stress(x)[1])
 
     def internal_force(self, x: NDArray) -> NDArray[np.float64]:
         """``dW/dx`` flattened (3N,), Pa mm^2."""
-        Fs, C = self._kinematics(x)
-        S = self.response(C, tangent=False)[1]
+        Fs, _, S = self._stress(x)
         fe = self.areas[:, None, None] * (self.grads @ np.swapaxes(Fs @ S, 1, 2))  # A F_s S G_a
         return np.bincount(self.dofs.ravel(), weights=fe.ravel(), minlength=self._ndof)
 
