@@ -108,3 +108,26 @@ def test_reused_factorization_follows_the_active_set():
         z = linear.preconditioner(keep)(b)
         if not released:  # exact: the factor's inverse on the remaining DOFs
             np.testing.assert_allclose(z, d, atol=1e-9)
+
+
+def test_load_ramp_cuts_back_the_step_that_failed(monkeypatch):
+    """After easy steps the increment grows past the recorded spacing; a failure must halve
+    the step that failed, not the grown increment (ten halvings of an increment of 100 never
+    get below a recorded step of 1/70, and the ramp gave up on breasts that converge)."""
+    accepted = [0.0]
+
+    def fake_newton(body, x, free, f_ext, settings, linear):
+        load = float(f_ext[0])
+        if load > 0.5 and load - accepted[0] > 4e-3:  # hard beyond half load: small steps only
+            raise SolverError("too large a step")
+        accepted[0] = load
+        return np.full_like(x, load), 1, np.zeros(x.size)
+
+    class Body:  # what load_ramp asks of a body besides Newton's solve
+        def min_jacobian(self, x):
+            return 1.0
+
+    monkeypatch.setattr("fem.engine.solver.newton", fake_newton)
+    record = np.arange(1, 71) / 70
+    path = load_ramp(Body(), np.zeros((4, 3)), np.ones(12, bool), lambda s: np.full(12, s), record)
+    np.testing.assert_allclose(path[:, 0, 0], record)

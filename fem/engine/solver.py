@@ -473,7 +473,7 @@ def load_ramp(
                 if hasattr(body, "reject"):
                     body.reject()
                 cutbacks += 1
-                increment *= 0.5
+                increment = 0.5 * (nxt - lam)  # of the failed step: the increment may be larger
                 if cutbacks > max_cutbacks:
                     raise SolverError(
                         f"load factor {nxt:.4g}: {exc}; gave up after {max_cutbacks} cutbacks"
