@@ -131,3 +131,26 @@ def test_load_ramp_cuts_back_the_step_that_failed(monkeypatch):
     record = np.arange(1, 71) / 70
     path = load_ramp(Body(), np.zeros((4, 3)), np.ones(12, bool), lambda s: np.full(12, s), record)
     np.testing.assert_allclose(path[:, 0, 0], record)
+
+
+def test_newton_damps_a_step_no_length_of_which_descends():
+    """On ``W = sum sqrt(1 + x^2)`` from x = 30 the Newton step overshoots by a factor of about
+    30^3 (the curvature is 3.7e-5): no halving down to ``min_step`` descends. The damped
+    (Levenberg-Marquardt) step does, and Newton converges to the minimum x = 0."""
+
+    class Hill:
+        def min_jacobian(self, x):
+            return 1.0
+
+        def energy(self, x):
+            return float(np.sqrt(1 + x.ravel() ** 2).sum())
+
+        def internal_force(self, x):
+            return (x / np.sqrt(1 + x**2)).ravel()
+
+        def tangent(self, x):
+            return sparse.diags((1 + x.ravel() ** 2) ** -1.5).tocsr()
+
+    x0 = np.full((1, 3), 30.0)
+    x, _, _ = newton(Hill(), x0, np.ones(3, bool), np.zeros(3), NewtonSettings(max_contraction=0))
+    assert np.abs(x).max() < 1e-6

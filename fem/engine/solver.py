@@ -4,7 +4,8 @@ Equilibrium minimises the potential ``Pi(x) = W(x) - f_ext . x`` over the free d
 freedom. Each Newton step solves ``K dx = -r`` on the free DOFs; where ``K`` is indefinite and
 ``dx`` is no descent direction, ``K + tau diag|K|`` is solved instead with ``tau`` raised tenfold
 until it is (a Levenberg-Marquardt safeguard); the line search halves the step until no element
-is inverted and the potential decreases (Armijo). A load ramp raises
+is inverted and the potential decreases (Armijo), and where no length of the step does (a
+nearly singular ``K``), the damped step is searched instead. A load ramp raises
 the load factor in increments, halving an increment whose Newton iteration fails and growing
 it again after easy steps, and records the positions at the requested load factors.
 """
@@ -275,6 +276,18 @@ def newton_step(
     return d, out
 
 
+#: Largest Levenberg-Marquardt shift ``tau`` (`damped_step`) before Newton gives up.
+MAX_SHIFT = 1e3
+
+
+def damped_step(K: sparse.spmatrix, held: NDArray[np.bool_], r: NDArray, shift: float) -> NDArray:
+    """Levenberg-Marquardt step ``-(K + tau diag|K|)^-1 r`` with the ``held`` DOFs fixed: for
+    ``tau`` large enough a descent direction of bounded length however indefinite or nearly
+    singular ``K`` is, (F,) float64."""
+    shifted = constrained(K + shift * sparse.diags(np.abs(K.diagonal())), ~held)
+    return splu(shifted.tocsc(), permc_spec="MMD_AT_PLUS_A").solve(-np.where(held, 0.0, r))
+
+
 def newton(
     body: HyperelasticBody | Model,
     x: NDArray,
@@ -360,14 +373,9 @@ def newton(
             dx, held = newton_step(K, g, flat, free, held, lower, upper, linear)
             slope, previous = g[free] @ dx, np.inf
         shift = 1e-3
-        while (
-            slope >= 0 and not modified
-        ):  # indefinite tangent (buckling skin, instability): shift until dx descends
-            shifted = K + shift * sparse.diags(np.abs(K.diagonal()))
-            dx = splu(constrained(shifted, ~held[free]).tocsc(), permc_spec="MMD_AT_PLUS_A").solve(
-                -np.where(held, 0.0, g)[free]
-            )
-            slope, shift = g[free] @ dx, 10 * shift
+        while slope >= 0 and not modified:  # indefinite tangent (buckling skin): shift it
+            dx, shift = damped_step(K, held[free], r, shift), 10 * shift
+            slope = g[free] @ dx
         step, rejected = 1.0, False
         while True:
             trial = flat.copy()
@@ -385,9 +393,13 @@ def newton(
                 break
             step *= 0.5
             if step < settings.min_step:
-                raise SolverError(
-                    f"line search failed at Newton iteration {it} (|r| = {np.linalg.norm(r):.3g})"
-                )
+                if shift > MAX_SHIFT:
+                    raise SolverError(
+                        f"line search failed at Newton iteration {it} (|r| = {norm:.3g})"
+                    )
+                # No length of this step descends admissibly (a nearly singular tangent sends
+                # a node 100 mm away): damp the tangent, as a trust region would.
+                dx, shift, step = damped_step(K, held[free], r, shift), 10 * shift, 1.0
         if rejected:
             continue
         moved = np.abs(trial - flat).max()
