@@ -154,8 +154,8 @@ class BlockPattern:
         k = dofs.shape[1]
         return (np.repeat(dofs, k, axis=1) * np.int64(n) + np.tile(dofs, (1, k))).ravel()
 
-    @classmethod
-    def _union(cls, n: int, keys: Sequence[NDArray], extra: sparse.spmatrix) -> NDArray[np.int64]:
+    @staticmethod
+    def _union(n: int, keys: Sequence[NDArray], extra: sparse.spmatrix) -> NDArray[np.int64]:
         """The sorted keys ``row * n + col`` of ``extra``'s pattern and of ``keys``; without a
         sort of all of them when ``extra`` holds them all (nodal averaging's ``B^T B`` holds
         every element block: half the pattern's set-up time)."""

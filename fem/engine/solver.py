@@ -6,8 +6,9 @@ freedom. Each Newton step solves ``K dx = -r`` on the free DOFs; where ``K`` is 
 until it is (a Levenberg-Marquardt safeguard); the line search halves the step until no element
 is inverted and the potential decreases (Armijo), and where no length of the step does (a
 nearly singular ``K``), the damped step is searched instead. A load ramp raises
-the load factor in increments, halving an increment whose Newton iteration fails and growing
-it again after easy steps, and records the positions at the requested load factors.
+the load factor in increments predicted from the last equilibria, halving a step whose Newton
+iteration fails and growing the increment again after easy steps, and records the positions
+at the requested load factors.
 """
 
 from __future__ import annotations
