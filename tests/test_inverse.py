@@ -10,7 +10,7 @@ from scipy.optimize import brentq
 
 from fem.contract.quality import signed_volume
 from fem.contract.trajectory import NodeFlag, Tissue, Trajectory
-from fem.engine.boundary import chest_wall, chest_wall_nodes
+from fem.engine.boundary import chest_wall, chest_wall_fascia, chest_wall_nodes
 from fem.engine.constraints import NodeFrames, equilibrium_path
 from fem.engine.inverse import (
     InverseError,
@@ -48,9 +48,10 @@ def hanging_column(width: float = 20.0, length: float = 30.0, n_y: int = 13) -> 
 
 
 def reload(traj: Trajectory, reference: np.ndarray, materials) -> np.ndarray:
-    """``reference`` loaded by prone gravity, ramped from zero (independent of fem.engine.inverse)."""
+    """``reference`` loaded by prone gravity, ramped from zero (independent of fem.engine.inverse),
+    on the sliding chest wall with its fascia anchored on ``reference``."""
     moved = replace(traj, points=reference)
-    model = breast_model(moved, materials)
+    model = breast_model(moved, materials, fascia=chest_wall_fascia(moved, reference, "sliding"))
     frames = NodeFrames.build(traj.n_nodes, chest_wall(traj, traj.points))
     f = nodal_body_force(model.body, np.array([0.0, GRAVITY_FORCE_DENSITY, 0.0]))
     record = [0.25, 0.5, 0.75, 1.0]

@@ -3,16 +3,20 @@ and their input errors."""
 
 import numpy as np
 import pytest
+import skfem
+from conftest import assert_exact_derivatives
 
 from fem.breasts.mesh import Mesher
 from fem.breasts.phantom import LabelVolume
 from fem.contract.quality import signed_volume
-from fem.contract.trajectory import NodeFlag, Tissue
+from fem.contract.trajectory import NodeFlag, Tissue, Trajectory
 from fem.engine.boundary import (
     chest_wall,
+    chest_wall_fascia,
     chest_wall_nodes,
     chest_wall_normals,
     plate_schedule,
+    wall_areas,
 )
 from fem.engine.simulation import (
     PAPER_MATERIALS,
@@ -263,3 +267,54 @@ def test_real_size_breast_through_both_steps(phantom):
     out = Simulation(unloaded_steps=10, compression_steps=10)(mesh)
     assert out.compression_ratio[-1] == pytest.approx(meta["target_compression_ratio"])
     assert_compression_invariants(mesh, out.unloaded[-1], out.compressed[-1], out.plates[-1])
+
+
+def walled_block(length: float = 30.0, width: float = 40.0) -> Trajectory:
+    """A fat block (y in [0, length]) on a 5 mm muscle slab (y in [-5, 0]), without skin: the
+    muscle/breast interface, y = 0, is a flat chest wall of ``width`` x ``width`` mm^2."""
+    edges = np.linspace(-width / 2, width / 2, 5)
+    m = skfem.MeshTet.init_tensor(edges, np.linspace(-5, length, 8), edges)
+    p, t = m.p.T.copy(), m.t.T.copy()
+    neg = signed_volume(p, t) < 0
+    t[neg] = t[neg][:, [0, 2, 1, 3]]
+    muscle = p[t, 1].mean(axis=1) < 0
+    flags = np.where(np.isclose(p[:, 1], 0), NodeFlag.MUSCLE_INTERFACE, 0).astype(np.uint8)
+    return Trajectory(
+        p,
+        t.astype(np.int64),
+        np.where(muscle, Tissue.MUSCLE, Tissue.FAT).astype(np.uint8),
+        np.full(len(p), 2, np.uint8),
+        flags,
+        np.zeros((0, 3), np.int64),
+        metadata={"source": "walled block"},
+    )
+
+
+def test_fascia_holds_a_block_on_the_sliding_wall_by_its_stiffness():
+    """A stiff block pulled along a sliding chest wall by a body force g (Pa/mm) slides as a
+    whole by g V / (k A): the fascia's stiffness k per unit area times the wall's area A. The
+    muscle is made so soft that its elements do not resist; half the slab's weight (lumped
+    on its nodes) lies on the wall, so V is the block's volume plus half the slab's."""
+    traj = walled_block()
+    materials = {"fat": Material(young=1e6, poisson=0.45), "muscle": Material(young=1e-3)}
+    k, g, volume, area = 75.0, 2.5, 40.0 * (30.0 + 5.0 / 2) * 40.0, 40.0 * 40.0
+    x = unloaded_state(traj, materials, n_steps=1, body_force=(0.0, 0.0, -g), fascia=k)[-1]
+    slide = (x - traj.points)[traj.points[:, 1] >= 0, 2]
+    assert slide.mean() == pytest.approx(-g * volume / (k * area), rel=0.01)  # 1.08 mm
+    assert np.ptp(slide) < 0.05 * abs(slide.mean())  # nearly rigidly (2 % shear)
+    free = unloaded_state(traj, materials, n_steps=1, body_force=(0.0, 0.0, -g), fascia=0.0)[-1]
+    assert np.abs(free - traj.points)[:, 2].max() > 10 * abs(slide.mean())  # only the muscle
+
+
+def test_fascia_is_a_tangential_spring(breast_mesh):
+    """The fascia's force is its energy's gradient and its tangent the force's Jacobian; it
+    acts only along the wall, on its sliding nodes, with the wall's area."""
+    fascia = chest_wall_fascia(breast_mesh, breast_mesh.points, "sliding", 75.0)
+    assert chest_wall_fascia(breast_mesh, breast_mesh.points, "tied") is None
+    x = breast_mesh.points + np.random.default_rng(1).normal(0, 1.0, breast_mesh.points.shape)
+    assert_exact_derivatives(fascia, x)
+    f = fascia.internal_force(x).reshape(-1, 3)[fascia.nodes]
+    assert np.abs((f * fascia.normals).sum(axis=1)).max() < 1e-9 * np.abs(f).max()
+    area = wall_areas(breast_mesh, breast_mesh.points)
+    assert fascia.stiffness.sum() == pytest.approx(75.0 * area[fascia.nodes].sum())
+    assert 1e3 < area.sum() < 1e5  # mm^2: a chest wall of a breast

@@ -6,8 +6,11 @@ the muscle and other tissues"):
 
 * ``sliding`` (default): the muscle's nodes are held (it does not deform); the nodes of the
   muscle/breast interface are held along the chest-wall normal (`chest_wall_normals`) and
-  slide along the wall, resisted only by the muscle elements between them and the held
-  muscle nodes. A breast without muscle elements has nothing to slide on: its flat posterior
+  slide along the wall, resisted by the retromammary fascia (`ChestWallFascia`: a tangential
+  stiffness per unit area of wall, ``FASCIA_STIFFNESS`` by default; 0 leaves only the muscle
+  elements between them and the held muscle nodes, which on the cohort's one-element-thick
+  muscle is nothing: under the standing gravity the breast slid down the wall by up to
+  340 mm). A breast without muscle elements has nothing to slide on: its flat posterior
   cut (where a segmentation was cropped at the chest wall,
   `fem.contract.quality.posterior_cut`) is tied except its rim on the skin, which slides (so
   the plates, which reach back to the chest wall, move it).
@@ -30,12 +33,17 @@ from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy import sparse
 
 from fem.contract.quality import boundary_faces, posterior_cut
 from fem.contract.trajectory import NodeFlag, Tissue, Trajectory
+from fem.engine.assembly import assemble
 from fem.engine.constraints import HeldDirections
 
 AP_AXIS = 1  #: anteroposterior axis (y, RAS+)
+#: Tangential stiffness of the retromammary fascia per unit area of chest wall, Pa/mm: a
+#: layer of loose connective tissue 5 mm thick with the fat's shear modulus (1100 Pa / 3).
+FASCIA_STIFFNESS = 75.0
 CHEST_WALLS = ("sliding", "tied", "anteroposterior", "none")
 VIEWS = ("cc", "mlo")
 AXIS_LETTERS = {"x": 0, "y": 1, "z": 2}
@@ -73,6 +81,17 @@ def chest_wall_normals(points: NDArray) -> NDArray[np.float64]:
     return normals / np.linalg.norm(normals, axis=1, keepdims=True)
 
 
+def sliding_wall(traj: Trajectory) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """The ``sliding`` chest wall's nodes (module docstring): those that slide along the wall
+    and those held in all directions (the muscle's, or a flat cut's inside), (M,) and (K,)."""
+    wall = chest_wall_nodes(traj)
+    muscle = np.unique(traj.cells[traj.tissue == Tissue.MUSCLE])
+    sliding = wall
+    if muscle.size == 0:  # a flat cut, no muscle to hold it: only its rim slides
+        sliding = np.intersect1d(wall, traj.flagged(NodeFlag.SKIN))
+    return sliding, np.setdiff1d(np.union1d(wall, muscle), sliding)
+
+
 def chest_wall(
     traj: Trajectory, points: NDArray, mode: str = "sliding", translations: tuple[int, ...] = (0, 2)
 ) -> HeldDirections:
@@ -96,7 +115,6 @@ def chest_wall(
             "posterior cut face: no chest wall to hold; give held nodes as "
             "simulation.constraints with simulation.chest_wall=none"
         )
-    muscle = np.unique(traj.cells[traj.tissue == Tissue.MUSCLE])
     if mode == "anteroposterior":
         p = points[wall]
         anchor = wall[np.argmin(np.linalg.norm(p - p.mean(0), axis=1))]
@@ -106,13 +124,97 @@ def chest_wall(
             + HeldDirections.axes([anchor], translations)
             + HeldDirections.axes([far], (0,))
         )
+    sliding, tied = sliding_wall(traj)
     if mode == "tied":
-        return HeldDirections.axes(np.union1d(wall, muscle))
-    sliding = wall
-    if muscle.size == 0:  # a flat cut, no muscle to hold it: only its rim slides
-        sliding = np.intersect1d(wall, traj.flagged(NodeFlag.SKIN))
-    tied = np.setdiff1d(np.union1d(wall, muscle), sliding)
+        return HeldDirections.axes(np.union1d(sliding, tied))
     return HeldDirections.axes(tied) + HeldDirections(sliding, chest_wall_normals(points[sliding]))
+
+
+def wall_areas(traj: Trajectory, points: NDArray) -> NDArray[np.float64]:
+    """Area of chest wall each node stands for, (N,) mm^2: a third of each adjacent triangle
+    of the breast's boundary (its elements other than muscle) whose three nodes lie on the
+    chest wall (`chest_wall_nodes`), at ``points`` (N, 3)."""
+    breast = traj.cells[traj.tissue != Tissue.MUSCLE]
+    faces, _ = boundary_faces(points, breast)
+    on_wall = np.zeros(len(points), bool)
+    on_wall[chest_wall_nodes(traj)] = True
+    faces = faces[on_wall[faces].all(axis=1)]
+    p = points[faces]
+    area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+    return np.bincount(faces.ravel(), weights=np.repeat(area / 3, 3), minlength=len(points))
+
+
+@dataclass
+class ChestWallFascia:
+    """The retromammary fascia under a sliding chest wall: each sliding node is held to where
+    the step starts by a tangential spring, ``W = 1/2 sum_i k_i |P_i (x_i - a_i)|^2`` with
+    ``P_i = I - n_i n_i^T``. A model part like the skin membrane (energy, force, tangent
+    blocks); the node's normal direction is held by the chest wall's frame.
+
+    Attributes
+    ----------
+    nodes : (M,) int64
+        The sliding nodes.
+    normals : (M, 3) float
+        The chest-wall normal at each (`chest_wall_normals`).
+    stiffness : (M,) float
+        ``k_i``: the fascia's stiffness per unit area times the node's wall area, Pa mm.
+    anchor : (M, 3) float
+        ``a_i``: the node's position where the step starts, mm.
+    n_nodes : int
+        Nodes of the mesh.
+    """
+
+    nodes: NDArray[np.int64]
+    normals: NDArray[np.float64]
+    stiffness: NDArray[np.float64]
+    anchor: NDArray[np.float64]
+    n_nodes: int
+
+    @property
+    def dofs(self) -> NDArray[np.int64]:
+        """The nodes' DOFs (M, 3)."""
+        return 3 * self.nodes[:, None] + np.arange(3)
+
+    def _projector(self) -> NDArray[np.float64]:
+        return np.eye(3) - self.normals[:, :, None] * self.normals[:, None, :]  # (M, 3, 3)
+
+    def _slip(self, x: NDArray) -> NDArray[np.float64]:
+        d = x[self.nodes] - self.anchor
+        return d - (d * self.normals).sum(axis=1, keepdims=True) * self.normals  # (M, 3)
+
+    def energy(self, x: NDArray) -> float:
+        """Stored energy, Pa mm^3."""
+        return float(0.5 * self.stiffness @ (self._slip(x) ** 2).sum(axis=1))
+
+    def internal_force(self, x: NDArray) -> NDArray[np.float64]:
+        """``dW/dx`` (3N,), Pa mm^2."""
+        f = np.zeros(3 * self.n_nodes)
+        f[self.dofs] = self.stiffness[:, None] * self._slip(x)
+        return f
+
+    def tangent(self, x: NDArray) -> sparse.csr_matrix:
+        """``d2W/dx2`` (3N, 3N), Pa mm."""
+        return assemble(3 * self.n_nodes, self.dofs, self.tangent_blocks(x))
+
+    def tangent_blocks(self, x: NDArray) -> NDArray[np.float64]:
+        """Node blocks (M, 3, 3) ``k_i P_i`` of ``d2W/dx2`` over `dofs`, Pa mm."""
+        return self.stiffness[:, None, None] * self._projector()
+
+
+def chest_wall_fascia(
+    traj: Trajectory, points: NDArray, mode: str, stiffness: float = FASCIA_STIFFNESS
+) -> ChestWallFascia | None:
+    """The fascia (`ChestWallFascia`) of the ``sliding`` chest wall on the shape ``points``
+    (N, 3) where the step starts, with ``stiffness`` per unit area of wall (Pa/mm); None for
+    another ``mode`` or a zero stiffness."""
+    if mode != "sliding" or stiffness == 0:
+        return None
+    sliding, _ = sliding_wall(traj)
+    k = stiffness * wall_areas(traj, points)[sliding]
+    return ChestWallFascia(
+        sliding, chest_wall_normals(points[sliding]), k, points[sliding].copy(), len(points)
+    )
 
 
 def read_constraints(path: str | Path, n_nodes: int) -> HeldDirections:

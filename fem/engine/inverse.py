@@ -36,7 +36,13 @@ from numpy.typing import NDArray
 from fem.contract.quality import signed_volume
 from fem.contract.trajectory import Trajectory
 from fem.engine.assembly import Model
-from fem.engine.boundary import AP_AXIS, chest_wall
+from fem.engine.boundary import (
+    AP_AXIS,
+    FASCIA_STIFFNESS,
+    ChestWallFascia,
+    chest_wall,
+    chest_wall_fascia,
+)
 from fem.engine.constraints import NodeFrames, equilibrium_path
 from fem.engine.simulation import PAPER_MATERIALS, Material, breast_model
 from fem.engine.solver import (
@@ -128,6 +134,7 @@ def forward(
     force_density: NDArray,
     guess: NDArray | None = None,
     settings: NewtonSettings = DEFAULT_NEWTON,
+    fascia: ChestWallFascia | None = None,
 ) -> NDArray[np.float64]:
     """Equilibrium of the body with stress-free ``reference`` (N, 3) under a body force.
 
@@ -142,6 +149,8 @@ def forward(
         continued from the internal force of the guess to the body force in one adaptive ramp
         step; without a guess, or if that fails, the body force is ramped from zero in
         ``n_load_steps`` recorded steps.
+    fascia : ChestWallFascia, optional
+        The sliding chest wall's fascia, anchored on ``reference``.
 
     Returns
     -------
@@ -154,7 +163,7 @@ def forward(
         The load ramp failed.
     """
     moved = replace(traj, points=np.asarray(reference, float))
-    model = breast_model(moved, materials)
+    model = breast_model(moved, materials, fascia=fascia)
     f = nodal_body_force(model.body, force_density)
     if guess is not None and model.min_jacobian(guess) > settings.min_jacobian:
         try:
@@ -208,6 +217,7 @@ def inverse_unloaded_state(
     force_density: float = GRAVITY_FORCE_DENSITY,
     settings: NewtonSettings = DEFAULT_NEWTON,
     chest: str = "sliding",
+    fascia: float = FASCIA_STIFFNESS,
 ) -> InverseResult:
     """The unloaded shape that prone gravity deforms into the imaged shape (backward displacement).
 
@@ -229,6 +239,9 @@ def inverse_unloaded_state(
         Magnitude of the prone body force ``rho g`` along +y, Pa/mm.
     chest : str
         The chest-wall condition (`fem.engine.boundary.chest_wall`).
+    fascia : float
+        The sliding chest wall's tangential stiffness per unit area, Pa/mm
+        (`fem.engine.boundary.ChestWallFascia`, anchored on each iterate).
 
     Returns
     -------
@@ -253,8 +266,9 @@ def inverse_unloaded_state(
 
     def solve(reference: NDArray, guess: NDArray | None, k: int) -> NDArray:
         try:
+            support = chest_wall_fascia(traj, reference, chest, fascia)
             return forward(
-                traj, reference, frames, materials, n_load_steps, density, guess, settings
+                traj, reference, frames, materials, n_load_steps, density, guess, settings, support
             )
         except SolverError as exc:
             raise InverseError(f"{source}: forward solve of iterate X_{k} failed: {exc}") from exc

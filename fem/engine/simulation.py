@@ -37,9 +37,12 @@ from fem.contract.trajectory import NodeFlag, Tissue, Trajectory
 from fem.engine.assembly import HyperelasticBody, Model
 from fem.engine.boundary import (
     CHEST_WALLS,
+    FASCIA_STIFFNESS,
     VIEWS,
+    ChestWallFascia,
     PlateSchedule,
     chest_wall,
+    chest_wall_fascia,
     plate_schedule,
     read_constraints,
 )
@@ -190,9 +193,10 @@ def breast_model(
     materials: Mapping[str, Material],
     averaging: str = "nodal",
     sets: Mapping[str, NDArray] | None = None,
+    fascia: ChestWallFascia | None = None,
 ) -> Model:
-    """The tissue body and, when ``materials`` has a membrane ``"skin"``, the skin membrane on
-    ``traj.skin``."""
+    """The tissue body, when ``materials`` has a membrane ``"skin"`` the skin membrane on
+    ``traj.skin``, and the chest wall's ``fascia`` if any."""
     mu, kappa = element_moduli(traj.tissue, materials, traj.source, sets)
     stabilization = VOLUMETRIC_STABILIZATION if averaging == "nodal" else 0.0
     body = HyperelasticBody(traj.points, traj.cells, mu, kappa, averaging, stabilization)
@@ -200,7 +204,7 @@ def breast_model(
     skin = materials.get("skin")
     if skin is not None and skin.is_membrane and len(traj.skin):
         parts = (SkinMembrane(traj.points, traj.skin, skin.moduli()[0], skin.membrane),)
-    return Model(body, parts)
+    return Model(body, parts if fascia is None else (*parts, fascia))
 
 
 def unloaded_state(
@@ -211,6 +215,7 @@ def unloaded_state(
     averaging: str = "nodal",
     settings: NewtonSettings = DEFAULT_NEWTON,
     chest: str = "sliding",
+    fascia: float = FASCIA_STIFFNESS,
     held: HeldDirections | None = None,
     sets: Mapping[str, NDArray] | None = None,
 ) -> NDArray[np.float64]:
@@ -222,6 +227,9 @@ def unloaded_state(
         Body force applied, Pa/mm (default: the prone gravity removed, ``rho g`` along -y).
     chest : str
         The chest-wall condition (`fem.engine.boundary.chest_wall`).
+    fascia : float
+        The sliding chest wall's tangential stiffness per unit area, Pa/mm
+        (`fem.engine.boundary.ChestWallFascia`).
     held : HeldDirections, optional
         A user's held directions, added to the chest wall's.
 
@@ -230,7 +238,8 @@ def unloaded_state(
     (n_steps, N, 3) float64
         Node positions, mm, at load factors ``1/n_steps, 2/n_steps, ..., 1``.
     """
-    model = breast_model(traj, materials, averaging, sets)
+    support = chest_wall_fascia(traj, traj.points, chest, fascia)
+    model = breast_model(traj, materials, averaging, sets, support)
     held_all = chest_wall(traj, traj.points, chest, (0, 2)) + (held or HeldDirections.none())
     frames = NodeFrames.build(traj.n_nodes, held_all)
     f = nodal_body_force(model.body, np.asarray(body_force, float))
@@ -259,6 +268,7 @@ def compression(
     friction: float = FRICTION,
     settings: NewtonSettings = DEFAULT_NEWTON,
     chest: str = "sliding",
+    fascia: float = FASCIA_STIFFNESS,
     held: HeldDirections | None = None,
     sets: Mapping[str, NDArray] | None = None,
 ) -> CompressionResult:
@@ -271,7 +281,9 @@ def compression(
     force (the standing patient's gravity, Pa/mm) is ramped with the plate travel.
     """
     moved = replace(traj, points=np.asarray(start, float))
-    model = breast_model(moved, materials, averaging, sets)
+    model = breast_model(
+        moved, materials, averaging, sets, chest_wall_fascia(moved, start, chest, fascia)
+    )
     skin_nodes = traj.flagged(NodeFlag.SKIN)
     n = len(start)
     lower_frame, upper_frame = schedule.frames(0.0)
@@ -406,6 +418,9 @@ class Simulation:
         Volumetric averaging (`fem.engine.assembly.HyperelasticBody`); ``element`` locks.
     chest_wall : {"sliding", "tied", "anteroposterior", "none"}
         How the chest wall holds the breast (`fem.engine.boundary.chest_wall`).
+    fascia_stiffness : float
+        The sliding chest wall's tangential stiffness per unit area of wall, Pa/mm
+        (`fem.engine.boundary.ChestWallFascia`; 0: free sliding).
     constraints : str, optional
         A file of held nodes and directions (`fem.engine.boundary.read_constraints`), added to
         the chest wall's.
@@ -428,6 +443,7 @@ class Simulation:
     compression_gravity: Sequence[float] = STANDING_GRAVITY
     averaging: str = "nodal"
     chest_wall: str = "sliding"
+    fascia_stiffness: float = FASCIA_STIFFNESS
     constraints: str | None = None
     linear_solver: str = "auto"
 
@@ -452,6 +468,7 @@ class Simulation:
             "unloaded_steps": (self.unloaded_steps >= 0, "be at least 0 (0: no unloaded state)"),
             "compression_steps": (self.compression_steps >= 1, "be at least 1"),
             "friction": (self.friction >= 0, "be >= 0 (0: frictionless)"),
+            "fascia_stiffness": (self.fascia_stiffness >= 0, "be >= 0 Pa/mm (0: free sliding)"),
             "view": (self.view in VIEWS, f"be one of {VIEWS}"),
             "angle": (0 <= self.angle <= 90, "lie in [0, 90] degrees"),
             "averaging": (self.averaging in ("nodal", "element"), "be 'nodal' or 'element'"),
@@ -509,6 +526,7 @@ class Simulation:
             materials=self.materials,
             averaging=self.averaging,
             chest=self.chest_wall,
+            fascia=self.fascia_stiffness,
             held=held,
             sets=sets,
             settings=replace(DEFAULT_NEWTON, linear_solver=self.linear_solver),
@@ -556,6 +574,7 @@ class Simulation:
                 "compression_gravity": list(self.compression_gravity),
                 "averaging": self.averaging,
                 "chest_wall": self.chest_wall,
+                "fascia_stiffness": self.fascia_stiffness,
                 "constraints": self.constraints,
                 "linear_solver": self.linear_solver,
                 "plate_extent_mm": [float(e) if np.isfinite(e) else None for e in schedule.extent],
