@@ -4,7 +4,9 @@
 
 `prepare_data` turns every ``P0007_L.npz`` into a per-breast feature cache
 (``<cache_dir>/<step>/P0007_L.features.npy`` (N, T, F) float32, ``.targets.npy`` (N, T, 3)
-float32 and ``.json`` with the normalisation), written atomically and skipped when present.
+float32 and ``.json`` with the normalisation and the source file's size and modification time),
+written atomically and skipped while the source is unchanged (a re-simulated cohort is
+re-cached, never read from its old features).
 Every dataset then reads the caches memory-mapped, so the cohort is never held in RAM twice:
 the sequence model gets one node's step sequence per item, ``(T, F) -> (T, 3)``, and the tree
 models get flat ``(node, step)`` rows (`TrajectoryDataModule.rows`) from the same split.
@@ -72,6 +74,21 @@ class Breast:
         return Normalization.from_json(meta)
 
 
+def source_stamp(source: Path) -> list[int]:
+    """The trajectory file's size (bytes) and modification time (ns): a cache of another
+    version of the file is stale."""
+    stat = source.stat()
+    return [stat.st_size, stat.st_mtime_ns]
+
+
+def cache_is_current(source: Path, stem: Path) -> bool:
+    """Whether ``stem``'s cache is complete (targets written last) and of ``source`` as it is."""
+    if not stem.with_suffix(".targets.npy").exists():
+        return False
+    meta = json.loads(stem.with_suffix(".json").read_text())
+    return meta.get("source_stamp") == source_stamp(source)
+
+
 def cache_breast(source: Path, stem: Path, step: str) -> None:
     """Write the feature cache of one simulated breast (atomically; targets last)."""
     traj = Trajectory.load(source)
@@ -83,6 +100,7 @@ def cache_breast(source: Path, stem: Path, step: str) -> None:
         "site": str(traj.metadata.get("site", "")),
         "n_nodes": traj.n_nodes,
         "n_steps": len(targets),
+        "source_stamp": source_stamp(source),
     }
     with atomic_path(stem.with_suffix(".features.npy")) as tmp:
         np.save(tmp, np.ascontiguousarray(features.transpose(1, 0, 2)))
@@ -225,12 +243,13 @@ class TrajectoryDataModule(L.LightningDataModule):
         return files
 
     def prepare_data(self) -> None:
-        """Cache the features of every breast not cached yet; the cache folder is created by
-        the first breast written, so a folder without (readable) trajectories gets none."""
+        """Cache the features of every breast not cached yet or changed since
+        (`cache_is_current`); the cache folder is created by the first breast written, so a
+        folder without (readable) trajectories gets none."""
         out = self.cache / self.hparams.step
         for source in self.sources():
             stem = out / source.stem
-            if not stem.with_suffix(".targets.npy").exists():  # written last: marks it done
+            if not cache_is_current(source, stem):
                 cache_breast(source, stem, self.hparams.step)
 
     def breasts(self) -> list[Breast]:

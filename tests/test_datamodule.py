@@ -51,6 +51,14 @@ def test_k_fold_and_cache_reuse(trajectory_folder):
     assert (
         trajectory_folder / "cache" / "compression" / "P0000_L.features.npy"
     ).stat().st_mtime_ns == stamp
+    # A re-simulated breast (another file) is re-cached, never read from its old features.
+    traj = tiny_trajectory("L", patient=0, site="A")
+    traj.compressed[-1, :, 2] -= 1.0
+    traj.save(trajectory_folder / "P0000_L.npz")
+    dm.prepare_data()
+    breast = next(b for b in dm.breasts() if b.name == "P0000_L")
+    mm = breast.normalization().invert(np.asarray(breast.targets()))
+    np.testing.assert_allclose(mm[:, -1], traj.compressed[-1], atol=1e-5)
 
 
 def test_a_partial_cohort_is_a_clear_error(tmp_path):
