@@ -617,6 +617,8 @@ BAD_COHORT = [
     (["scheduler=tcp://localhost:8786"], ValueError,
      r"scheduler=tcp://localhost:8786 is a Dask scheduler's address: it needs executor=dask"),
     (["simulate=true", "simulation.friction=-1"], SETTING, r"simulation\.friction must be >= 0"),
+    (["simulate=true", "simulation.fascia_stiffness=-1"], SETTING,
+     r"simulation\.fascia_stiffness must be >= 0 Pa/mm"),
     (["simulate=true", "simulation.materials.fat.young=0"], SETTING,
      r"simulation\.materials\.fat: young must be > 0 Pa"),
     (["simulate=true", "simulation.compression_ratio=1.5"], SETTING,
