@@ -1,6 +1,7 @@
 """Time both FE steps per breast: the unloaded state and the compression with friction.
 
     python benchmarks/simulate_breast.py data/cohort/full/P0001_L.npz ... --repeats 5
+    OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 python benchmarks/simulate_breast.py ... --linear-solver pardiso
 
 For each mesh, ``--repeats`` runs of `fem.engine.simulation.Simulation` with the paper's parameters
 (100 unloaded-state steps, 70 compression steps to the breast's target compression ratio,
@@ -26,8 +27,9 @@ def main() -> None:
     ap.add_argument("meshes", nargs="+", help="Trajectory .npz files from the cohort command")
     ap.add_argument("--repeats", type=int, default=5, help="runs per breast (median reported)")
     ap.add_argument("--friction", type=float, default=0.25)
+    ap.add_argument("--linear-solver", default="auto", help="auto | superlu | pardiso")
     args = ap.parse_args()
-    simulation = Simulation(friction=args.friction)
+    simulation = Simulation(friction=args.friction, linear_solver=args.linear_solver)
     totals = []
     print(
         "| breast | volume (cm^3) | elements | unloaded (s) | compression (s) | both (s) "

@@ -83,31 +83,56 @@ def test_stabilization_interpolates_between_nodal_and_element(block):
         HyperelasticBody(points, cells, mu, kappa, "nodal", 1.5)
 
 
-def test_model_tangent_in_one_pattern_equals_the_sum_of_its_parts(block):
-    """`Model.tangent` scatters every part into one `BlockPattern`: the same matrix as adding
-    each part's own sparse tangent, with full 3 x 3 node blocks."""
+@pytest.mark.parametrize("stabilization", [0.0, 0.1])
+def test_model_tangent_in_one_pattern_equals_the_sum_of_its_parts(block, stabilization):
+    """`Model.tangent` scatters every part into one `BlockPattern` and keeps nodal averaging's
+    coupling as a factor: ``local + factor^T factor`` is the same matrix as adding each part's
+    own sparse tangent; ``local`` has full 3 x 3 node blocks and a fixed pattern."""
     points, cells, mu, kappa = block
-    body = HyperelasticBody(points, cells, mu, kappa, "nodal")
+    body = HyperelasticBody(points, cells, mu, kappa, "nodal", stabilization)
     skin = SkinMembrane(points, boundary_faces(points, cells)[0], mu=300.0)
     model = Model(body, (skin,))
     x = points + 0.3 * np.random.default_rng(4).standard_normal(points.shape)
     expected = body.tangent(x) + skin.tangent(x)
     K = model.tangent(x)
-    assert abs(K - expected).max() <= 1e-12 * abs(expected).max()
-    assert K.has_sorted_indices and np.all(np.diff(K.indptr)[::3] % 3 == 0)
-    assert model.tangent(x + 0.1).nnz == K.nnz  # the pattern is fixed
+    assert abs(K.full() - expected).max() <= 1e-12 * abs(expected).max()
+    v = np.random.default_rng(5).standard_normal(K.shape[0])
+    np.testing.assert_allclose(
+        K @ v, expected @ v, rtol=1e-12, atol=1e-12 * abs(expected @ v).max()
+    )
+    np.testing.assert_allclose(K.diagonal(), expected.diagonal(), rtol=1e-12)
+    assert K.factor.shape == (len(points), 3 * len(points))  # the nodal patches only
+    local = K.local
+    assert local.has_sorted_indices and np.all(np.diff(local.indptr)[::3] % 3 == 0)
+    assert model.tangent(x + 0.1).local.nnz == local.nnz  # the pattern is fixed
+    assert local.nnz < 0.6 * expected.nnz  # the 1-ring stencil
 
 
-def test_block_pattern_union_of_sets_and_extra():
-    """A pattern holds every set's blocks and the extra entries, whether or not the extra
-    matrix already covers the blocks (nodal averaging's ``B^T B`` does)."""
+def test_augmented_tangent_solves_the_condensed_system(block):
+    """Eliminating the augmented system's patch unknowns gives the condensed tangent: its
+    first n unknowns solve ``(local + factor^T factor) u = b``; plain P1 has no factor."""
+    points, cells, mu, kappa = block
+    x = points + 0.3 * np.random.default_rng(6).standard_normal(points.shape)
+    fixed = np.repeat(points[:, 2] == 0.0, 3)
+    K = Model(HyperelasticBody(points, cells, mu, kappa, "nodal", 0.1)).tangent(x)
+    K = K.submatrix(~fixed)
+    n = K.shape[0]
+    b = np.random.default_rng(7).standard_normal(n)
+    A = K.augmented()
+    assert A.shape == (n + len(points), n + len(points))
+    assert abs(A - A.T).max() <= 1e-12 * abs(A).max()
+    u = sparse.linalg.spsolve(A.tocsc(), np.concatenate([b, np.zeros(len(points))]))[:n]
+    np.testing.assert_allclose(K.full() @ u, b, atol=1e-9 * np.abs(b).max())
+    plain = Model(HyperelasticBody(points, cells, mu, kappa, "element")).tangent(x)
+    assert plain.factor.shape[0] == 0 and plain.augmented().shape == plain.shape
+
+
+def test_block_pattern_union_of_sets():
+    """A pattern holds every set's blocks, overlapping ones once."""
     dofs = np.array([[0, 1], [4, 5]])
-    inside = sparse.csr_matrix(np.ones((6, 6)))
-    outside = sparse.csr_matrix(([1.0], ([2], [3])), shape=(6, 6))
-    for extra, expected in ((inside, 36), (outside, 9)):
-        pattern = BlockPattern(6, [dofs], extra)
-        data = np.zeros(pattern.nnz)
-        pattern.scatter(data, 0, np.ones((2, 2, 2)))
-        K = pattern.matrix(data).toarray()
-        assert pattern.nnz == expected
-        assert K[0, 1] == K[5, 4] == 1.0 and K[0, 4] == 0.0 and K.sum() == 8.0
+    pattern = BlockPattern(6, [dofs, np.array([[1, 4]])])
+    data = np.zeros(pattern.nnz)
+    pattern.scatter(data, 0, np.ones((2, 2, 2)))
+    K = pattern.matrix(data).toarray()
+    assert pattern.nnz == 10
+    assert K[0, 1] == K[5, 4] == 1.0 and K[1, 4] == 0.0 and K.sum() == 8.0

@@ -56,12 +56,14 @@ def test_rotated_tangent_equals_the_sparse_product():
     x = p + 0.3 * np.random.default_rng(2).standard_normal(p.shape)
     K = Model(HyperelasticBody(p, t, MU, KAPPA)).tangent(x)
     T = frames.transform()
-    expected = T.T @ K @ T
+    expected = T.T @ K.local @ T
     assert (
-        abs(frames.rotate(K, frames.rotation_plan(K)) - expected).max()
+        abs(frames.rotate(K.local, frames.rotation_plan(K.local)) - expected).max()
         <= 1e-12 * abs(expected).max()
     )
-    partial = Model(HyperelasticBody(p, t, MU, KAPPA)).tangent(p)  # exact zeros at rest ...
+    factor = frames.rotate(K.factor, frames.rotation_plan(K.factor, rows=False))  # K T only
+    assert abs(factor - K.factor @ T).max() <= 1e-12 * abs(K.factor).max()
+    partial = Model(HyperelasticBody(p, t, MU, KAPPA)).tangent(p).local  # exact zeros at rest ...
     partial.eliminate_zeros()  # ... dropped
     with pytest.raises(ValueError, match="full 3 x 3 node blocks"):
         frames.rotation_plan(partial)

@@ -15,8 +15,10 @@ and tangent follow by differentiation and the tangent is symmetric:
     K   = sum_e dF:[V_e A_iso + q_e d2J/dF2]:dF  +  B^T diag(V_p U''(Jbar_p)) B,
     B   = diag(1/V_p) S dJ/dx      (row p: the gradient of Jbar_p).
 
-The element blocks are scattered into a fixed sparsity pattern with ``np.bincount`` (the
-"hand-vectorised kernel"); `fem.engine.assembly.skfem_tangent` is the scikit-fem reference it is
+The element blocks (with the element patches' share of the last term) are scattered into a
+fixed sparsity pattern with ``np.bincount`` (the "hand-vectorised kernel"); the nodal patches'
+term stays the factor ``sqrt(c) B`` of a `SplitTangent`, whose 2-ring coupling a direct solver
+never forms; `fem.engine.assembly.skfem_tangent` is the scikit-fem reference it is
 tested against.
 """
 
@@ -135,36 +137,20 @@ class BlockPattern:
         Number of DOFs.
     dof_sets : sequence of (M, k) int
         Each set's DOFs per block (element, triangle, node).
-    extra : sparse matrix, optional
-        Further entries (its pattern; ``B^T B`` of nodal averaging).
     """
 
-    def __init__(self, n: int, dof_sets: Sequence[NDArray], extra: sparse.spmatrix | None = None):
+    def __init__(self, n: int, dof_sets: Sequence[NDArray]):
         keys = [self._keys(d, n) for d in dof_sets]
-        unique = np.unique(np.concatenate(keys)) if extra is None else self._union(n, keys, extra)
+        unique = np.unique(np.concatenate(keys))
         self.n = n
         self.scatters = [np.searchsorted(unique, k) for k in keys]
         self.indices = (unique % n).astype(np.int32)
         self.indptr = np.searchsorted(unique // n, np.arange(n + 1)).astype(np.int32)
-        self._keys_all = unique
-        self._mapped: tuple[NDArray, NDArray, NDArray] | None = None  # a pattern -> positions
 
     @staticmethod
     def _keys(dofs: NDArray, n: int) -> NDArray[np.int64]:
         k = dofs.shape[1]
         return (np.repeat(dofs, k, axis=1) * np.int64(n) + np.tile(dofs, (1, k))).ravel()
-
-    @staticmethod
-    def _union(n: int, keys: Sequence[NDArray], extra: sparse.spmatrix) -> NDArray[np.int64]:
-        """The sorted keys ``row * n + col`` of ``extra``'s pattern and of ``keys``; without a
-        sort of all of them when ``extra`` holds them all (nodal averaging's ``B^T B`` holds
-        every element block: half the pattern's set-up time)."""
-        E = extra.tocsr()
-        E.sum_duplicates()  # sorted indices, no duplicates
-        base = np.repeat(np.arange(n, dtype=np.int64), np.diff(E.indptr)) * n + E.indices
-        every = np.concatenate(keys)
-        where = np.minimum(np.searchsorted(base, every), len(base) - 1)
-        return base if np.array_equal(base[where], every) else np.union1d(base, every)
 
     @property
     def nnz(self) -> int:
@@ -174,20 +160,69 @@ class BlockPattern:
         """Add the blocks (M, k, k) of DOF set ``which`` to ``data`` (nnz,)."""
         data += np.bincount(self.scatters[which], weights=blocks.ravel(), minlength=self.nnz)
 
-    def add(self, data: NDArray, M: sparse.csr_matrix) -> None:
-        """Add a CSR matrix whose entries lie in the pattern to ``data``."""
-        m = self._mapped
-        if m is None or not same_pattern(m[:2], M):
-            rows = np.repeat(np.arange(self.n, dtype=np.int64), np.diff(M.indptr))
-            where = np.searchsorted(self._keys_all, rows * self.n + M.indices)
-            m = self._mapped = (M.indptr.copy(), M.indices.copy(), where)
-        data[m[2]] += M.data
-
     def matrix(self, data: NDArray) -> sparse.csr_matrix:
         """The CSR matrix with these values (sorted indices, full blocks)."""
         K = sparse.csr_matrix((data, self.indices, self.indptr), shape=(self.n, self.n))
         K.has_sorted_indices = True
         return K
+
+
+@dataclass(frozen=True)
+class SplitTangent:
+    """A symmetric tangent kept as ``K = local + factor^T factor``.
+
+    Nodal averaging couples every node with its patch's patch (a 2-ring stencil): the
+    condensed ``K`` has 2.5x the nonzeros of ``local`` and its LU fills in far more. Direct
+    solvers factorize the equivalent augmented matrix ``[[local, factor^T], [factor, -I]]``
+    instead (`augmented`; eliminating its last ``P`` unknowns, ``q = factor u``, gives
+    ``K u = b`` exactly), whose stencil is the 1-ring: on a breast refined to 139,200
+    tetrahedra (79,287 DOFs) MKL PARDISO factorized it in 28 s against 83 s for ``K``.
+
+    Parameters
+    ----------
+    local : (n, n) CSR
+        The element blocks (with the element-wise share of the volumetric energy) and the
+        parts' blocks, Pa mm.
+    factor : (P, n) CSR
+        ``sqrt(c) dJbar/dx`` of the ``P`` nodal patches (`HyperelasticBody.volumetric_factor`),
+        sqrt(Pa mm).
+    """
+
+    local: sparse.csr_matrix
+    factor: sparse.csr_matrix
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.local.shape
+
+    @property
+    def dtype(self) -> np.dtype:
+        return self.local.dtype
+
+    def __matmul__(self, v: NDArray) -> NDArray[np.float64]:
+        return self.local @ v + self.factor.T @ (self.factor @ v)
+
+    def diagonal(self) -> NDArray[np.float64]:
+        return (
+            self.local.diagonal()
+            + np.asarray(self.factor.multiply(self.factor).sum(axis=0)).ravel()
+        )
+
+    def full(self) -> sparse.csr_matrix:
+        """The condensed ``local + factor^T factor`` (n, n)."""
+        return (self.local + self.factor.T @ self.factor).tocsr()
+
+    def toarray(self) -> NDArray[np.float64]:
+        return self.full().toarray()
+
+    def submatrix(self, keep: NDArray[np.bool_]) -> SplitTangent:
+        """The rows and columns of the DOFs ``keep``."""
+        return SplitTangent(self.local[keep][:, keep], self.factor[:, keep].tocsr())
+
+    def augmented(self) -> sparse.csr_matrix:
+        """``[[local, factor^T], [factor, -I]]`` (n + P, n + P), symmetric indefinite."""
+        eye = sparse.identity(self.factor.shape[0], format="csr")
+        return sparse.bmat([[self.local, self.factor.T], [self.factor, -eye]], format="csr")
 
 
 def assemble(n: int, dofs: NDArray, blocks: NDArray) -> sparse.csr_matrix:
@@ -272,8 +307,11 @@ class HyperelasticBody:
         # B = diag(1/V_p) S dJ/dx, the gradients of the patch averages Jbar_p, has a fixed
         # structure and data linear in dJ/dx (E, 4, 3): B.data = bincount(_b_entry,
         # _b_weight * dJ[_b_source]), one term per (patch, element of the patch, DOF).
-        Sc = (sparse.diags(1.0 / self.patch_volume) @ S).tocoo()
-        patch = np.repeat(Sc.row, 12)
+        # Only the nodal patches couple elements (the first n rows of S); the element patches'
+        # share of the volumetric energy is element-local (`tangent_blocks`).
+        self._coupled = n if self.averaging == "nodal" else 0
+        Sc = (sparse.diags(1.0 / self.patch_volume) @ S)[: self._coupled].tocoo()
+        patch = np.repeat(Sc.row.astype(np.int64), 12)  # keys pass 2^31 on real-size meshes
         dof = self.dofs[Sc.col].ravel()
         keys = patch * (3 * n) + dof
         unique, self._b_entry = np.unique(keys, return_inverse=True)
@@ -319,26 +357,34 @@ class HyperelasticBody:
         return self._DT @ stress.reshape(-1)
 
     def tangent_blocks(self, x: NDArray) -> NDArray[np.float64]:
-        """Element blocks (E, 12, 12) of the tangent over `dofs`, without the coupling of
-        nodal averaging (`volumetric_factor`), Pa mm."""
+        """Element blocks (E, 12, 12) of the tangent over `dofs`, with the element patches'
+        volumetric stiffness and without the coupling of the nodal patches
+        (`volumetric_factor`), Pa mm."""
         F, _, Jbar = self._volumetric(x)
         q = self.S.T @ volumetric_pressure(Jbar, self.patch_kappa)
-        return element_blocks(F, self.grads, self.volumes, self.mu, q).reshape(-1, 12, 12)
+        blocks = element_blocks(F, self.grads, self.volumes, self.mu, q).reshape(-1, 12, 12)
+        m = self._coupled
+        if len(Jbar) > m:  # element patches: c_e dJ_e/dx (dJ_e/dx)^T
+            c = self.patch_volume[m:] * volumetric_stiffness(Jbar[m:], self.patch_kappa[m:])
+            dJ = (self.grads @ np.swapaxes(cofactor(F), 1, 2)).reshape(-1, 12)
+            blocks += c[:, None, None] * dJ[:, :, None] * dJ[:, None, :]
+        return blocks
 
     def volumetric_factor(self, x: NDArray) -> sparse.csr_matrix:
-        """``sqrt(c) B`` with ``c = V_p U''(Jbar_p) >= 0`` and ``B = dJbar/dx`` (P, 3N): the
-        rest of the tangent is ``B^T diag(c) B``, the square of this."""
+        """``sqrt(c) B`` with ``c = V_p U''(Jbar_p) >= 0`` and ``B = dJbar/dx`` (P, 3N) of the
+        ``P`` nodal patches (none for plain P1): the rest of the tangent is
+        ``B^T diag(c) B``, the square of this."""
         F, _, Jbar = self._volumetric(x)
+        m = self._coupled
         dJ = (self.grads @ np.swapaxes(cofactor(F), 1, 2)).reshape(-1)  # dJ_e/dx_{a,i}
-        c = self.patch_volume * volumetric_stiffness(Jbar, self.patch_kappa)
+        c = self.patch_volume[:m] * volumetric_stiffness(Jbar[:m], self.patch_kappa[:m])
         values = np.bincount(
             self._b_entry,
             weights=self._b_weight * dJ[self._b_source],
             minlength=len(self._b_pattern[0]),
         )
         return sparse.csr_matrix(
-            (values * np.sqrt(c)[self._b_pattern[0]], self._b_pattern),
-            shape=(len(self.patch_volume), self._ndof),
+            (values * np.sqrt(c)[self._b_pattern[0]], self._b_pattern), shape=(m, self._ndof)
         )
 
     def tangent(self, x: NDArray) -> sparse.csr_matrix:
@@ -355,8 +401,8 @@ class Model:
 
     Each part gives its tangent as blocks over fixed DOFs (``dofs`` (M, k) and
     ``tangent_blocks(x)`` (M, k, k)); the tangent is scattered into one fixed `BlockPattern`
-    (the body's elements, the parts' blocks and nodal averaging's ``B^T B``), built on the
-    first call.
+    (the body's elements and the parts' blocks), built on the first call; nodal averaging's
+    ``B^T B`` stays a factor (`SplitTangent`).
     """
 
     body: HyperelasticBody
@@ -378,20 +424,16 @@ class Model:
             (p.internal_force(x) for p in self.parts), start=0.0
         )
 
-    def tangent(self, x: NDArray) -> sparse.csr_matrix:
-        B = self.body.volumetric_factor(x)
+    def tangent(self, x: NDArray) -> SplitTangent:
         if self._pattern is None:
-            ones = B.copy()
-            ones.data[:] = 1.0  # the symbolic pattern of B^T B (no cancellation)
             self._pattern = BlockPattern(
-                self.body.n_dofs, [self.body.dofs, *(p.dofs for p in self.parts)], ones.T @ ones
+                self.body.n_dofs, [self.body.dofs, *(p.dofs for p in self.parts)]
             )
         data = np.zeros(self._pattern.nnz)
         self._pattern.scatter(data, 0, self.body.tangent_blocks(x))
         for i, p in enumerate(self.parts, start=1):
             self._pattern.scatter(data, i, p.tangent_blocks(x))
-        self._pattern.add(data, B.T.tocsr() @ B)
-        return self._pattern.matrix(data)
+        return SplitTangent(self._pattern.matrix(data), self.body.volumetric_factor(x))
 
 
 def skfem_tangent(body: HyperelasticBody, x: NDArray) -> sparse.csr_matrix:

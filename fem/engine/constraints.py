@@ -26,7 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import sparse
 
-from fem.engine.assembly import Model, same_pattern
+from fem.engine.assembly import Model, SplitTangent, same_pattern
 from fem.engine.contact import RigidPlate
 from fem.engine.solver import NewtonSettings, load_ramp
 
@@ -196,28 +196,32 @@ class NodeFrames:
         data[plan.cols] = np.einsum("mj,mjk->mk", data[plan.cols], R[plan.col_nodes])  # K R_J
         return sparse.csr_matrix((data, K.indices, K.indptr), shape=K.shape)
 
-    def rotation_plan(self, K: sparse.csr_matrix) -> RotationPlan:
+    def rotation_plan(self, K: sparse.csr_matrix, rows: bool = True) -> RotationPlan:
         """Where `rotate` reads and writes in ``K.data`` (sorted CSR whose pattern is made of
-        full 3 x 3 node blocks, as `fem.engine.assembly.Model.tangent` makes them)."""
+        full 3 x 3 node blocks, as `fem.engine.assembly.Model.tangent` makes them); with
+        ``rows=False`` the columns only (``K T``; of a matrix whose rows hold full node
+        triples of columns, as the nodal-averaging factor)."""
         indptr, length, r = K.indptr, np.diff(K.indptr), self.rotated
         first = np.flatnonzero(K.indices % 3 == 0)
         if (
-            np.any(length % 3)
-            or np.any(length[0::3] != length[1::3])
-            or np.any(length[0::3] != length[2::3])
-            or np.any(
-                np.diff(K.indices[np.minimum(first[:, None] + np.arange(3), K.nnz - 1)], axis=1)
-                != 1
+            rows
+            and (
+                np.any(length % 3)
+                or np.any(length[0::3] != length[1::3])
+                or np.any(length[0::3] != length[2::3])
             )
+        ) or np.any(
+            np.diff(K.indices[np.minimum(first[:, None] + np.arange(3), K.nnz - 1)], axis=1) != 1
         ):
             raise ValueError("the tangent's pattern is not made of full 3 x 3 node blocks")
+        is_rotated = np.zeros(len(self.rotations), bool)
+        is_rotated[r] = True
+        r = r if rows else r[:0]
         starts = indptr[3 * r[:, None] + np.arange(3)]  # (R, 3)
         owner = np.repeat(np.arange(len(r)), length[3 * r])
         offsets = np.arange(len(owner)) - np.repeat(
             np.cumsum(length[3 * r]) - length[3 * r], length[3 * r]
         )
-        is_rotated = np.zeros(len(self.rotations), bool)
-        is_rotated[r] = True
         first = first[is_rotated[K.indices[first] // 3]]
         return RotationPlan(
             K.indptr.copy(),
@@ -273,6 +277,7 @@ class FramedModel:
         self.model, self.frames = model, frames
         self.body = model.body
         self._plan: RotationPlan | None = None
+        self._factor_plan: RotationPlan | None = None
         self.cells = model.cells
         self.plates = [p for p in model.parts if isinstance(p, RigidPlate)]
         self._bounded, self._edges = [], []
@@ -311,15 +316,21 @@ class FramedModel:
     def internal_force(self, y: NDArray) -> NDArray[np.float64]:
         return self.frames.to_local(self.model.internal_force(self._x(y)))
 
-    def tangent(self, y: NDArray) -> sparse.csr_matrix:
+    def tangent(self, y: NDArray) -> SplitTangent:
+        """``T^T K T`` of the model's tangent, both of its terms."""
         K = self.model.tangent(self._x(y))
         if not self.frames.rotated.size:
             return K
-        K = K.tocsr()
-        K.sort_indices()
-        if self._plan is None or not self._plan.fits(K):
-            self._plan = self.frames.rotation_plan(K)
-        return self.frames.rotate(K, self._plan)
+        local, factor = K.local.tocsr(), K.factor.tocsr()
+        local.sort_indices()
+        factor.sort_indices()
+        if self._plan is None or not self._plan.fits(local):
+            self._plan = self.frames.rotation_plan(local)
+        if self._factor_plan is None or not self._factor_plan.fits(factor):
+            self._factor_plan = self.frames.rotation_plan(factor, rows=False)
+        return SplitTangent(
+            self.frames.rotate(local, self._plan), self.frames.rotate(factor, self._factor_plan)
+        )
 
     def bounds(self, y: NDArray) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Lower and upper bounds (3N,) of the local coordinates at ``y`` (+-inf: unbounded):

@@ -1,20 +1,24 @@
 """Sparse direct solvers for Newton's linear systems, chosen by size.
 
 The tangents are symmetric; held DOFs keep their rows and columns with only the diagonal
-(`fem.engine.solver.constrained`), so the pattern of a load path's systems never changes.
+(`constrained`), so the pattern of a load path's systems never changes.
 
 * SuperLU (SciPy) with a minimum-degree ordering on ``K + K^T`` and no pivoting (26 % less
   fill than partial pivoting on a breast), partial pivoting as the fallback: no dependency,
-  fastest for the paper-resolution cohort (about 1,800 DOFs), but its ordering scales badly
-  with 3-D meshes (a nested-refined breast of 17,400 tetrahedra, 11,235 DOFs: 1.7-4 s per
-  factorization, 18 M nonzeros in the factors).
+  factorizes the condensed tangent; its ordering scales badly with 3-D meshes (a
+  nested-refined breast of 17,400 tetrahedra, 11,235 DOFs: 1.7-4 s per factorization, 18 M
+  nonzeros in the factors).
 * MKL PARDISO (the optional ``mkl`` wheel, x86-64: ``pip install -e ".[pardiso]"``):
   symmetric indefinite LDL^T with METIS nested dissection, Bunch-Kaufman pivoting and
   iterative refinement; the ordering and symbolic analysis are done once per pattern
-  (PARDISO phase 11) and reused by every later factorization (phase 22).
+  (PARDISO phase 11) and reused by every later factorization (phase 22). A nodal-averaged
+  tangent (`fem.engine.assembly.SplitTangent`) is factorized in its augmented, 1-ring form
+  (a third more unknowns, 40 % of the nonzeros, 3x faster on a 139k-tetrahedra breast).
 
-`resolve_backend` picks PARDISO from `PARDISO_FROM` DOFs on when MKL can be loaded, SuperLU
-otherwise; `fem.engine.solver.ReusedFactorization` uses it (docs/benchmarks.md, "Real-size meshes").
+`resolve_backend` picks PARDISO from `PARDISO_FROM` DOFs on when MKL can be loaded (with the
+augmented form it is faster from the paper-resolution cohort's 1,800 DOFs on: both steps of a
+breast 25-30 % faster than with SuperLU, positions within 5e-7 mm), SuperLU otherwise;
+`fem.engine.solver.ReusedFactorization` uses it (docs/benchmarks.md, "Real-size meshes").
 """
 
 from __future__ import annotations
@@ -32,17 +36,50 @@ from numpy.typing import NDArray
 from scipy import sparse
 from scipy.sparse.linalg import splu
 
-from fem.engine.assembly import same_pattern
+from fem.engine.assembly import SplitTangent, same_pattern
 
 #: DOFs from which ``auto`` prefers PARDISO (when MKL is installed).
-PARDISO_FROM = 5000
+PARDISO_FROM = 1000
 
 BACKENDS = ("auto", "superlu", "pardiso")
 
 
-def superlu(K: sparse.spmatrix) -> sparse.linalg.SuperLU:
-    """Sparse LU of a symmetric matrix: no pivoting first, partial pivoting if that fails."""
-    K = K.tocsc()
+#: A tangent as the solvers take it.
+Tangent = sparse.spmatrix | SplitTangent
+
+
+def condensed(K: Tangent) -> sparse.csr_matrix:
+    """``K`` as one CSR matrix (a `SplitTangent`'s ``local + factor^T factor``)."""
+    return K.full() if isinstance(K, SplitTangent) else K.tocsr()
+
+
+def submatrix(K: Tangent, keep: NDArray[np.bool_]) -> Tangent:
+    """The rows and columns of the DOFs ``keep``."""
+    return K.submatrix(keep) if isinstance(K, SplitTangent) else K.tocsr()[keep][:, keep]
+
+
+def constrained(K: Tangent, keep: NDArray[np.bool_]) -> Tangent:
+    """``K`` with the rows and columns of the DOFs not in ``keep`` zeroed but their diagonal kept.
+
+    Solving with it leaves those DOFs unchanged (zero right-hand side) while the matrix keeps its
+    shape and sparsity pattern, so one factorization can precondition the next active set. A
+    `SplitTangent` keeps the held DOFs' diagonal in ``local`` and their factor columns as
+    explicit zeros.
+    """
+    if isinstance(K, SplitTangent):
+        factor = K.factor.copy()
+        factor.data *= keep[factor.indices]
+        return SplitTangent(constrained(K.local, keep), factor)
+    K = K.tocsr(copy=True)
+    rows = np.repeat(np.arange(K.shape[0]), np.diff(K.indptr))
+    K.data *= (keep[rows] & keep[K.indices]) | (rows == K.indices)
+    return K
+
+
+def superlu(K: Tangent) -> sparse.linalg.SuperLU:
+    """Sparse LU of a symmetric matrix (a `SplitTangent` condensed): no pivoting first, partial
+    pivoting if that fails."""
+    K = condensed(K).tocsc()
     try:
         return splu(
             K, permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True, "DiagPivotThresh": 0.0}
@@ -146,9 +183,11 @@ class Pardiso:
     def _call(self, phase: int, b: NDArray | None = None) -> NDArray | None:
         return pardiso_phase(self._pardiso, self._handle, self._iparm, phase, self._upper, b)
 
-    def factorize(self, K: sparse.spmatrix) -> PardisoFactor:
-        """Factorize a symmetric ``K``; the analysis is redone only for a new pattern."""
-        upper = sparse.triu(K, format="csr")
+    def factorize(self, K: Tangent) -> PardisoFactor:
+        """Factorize a symmetric ``K`` (a `SplitTangent` in its augmented form); the analysis
+        is redone only for a new pattern."""
+        A = K.augmented() if isinstance(K, SplitTangent) else K
+        upper = sparse.triu(A, format="csr")
         upper.sort_indices()
         upper.indptr = upper.indptr.astype(np.int32)
         upper.indices = upper.indices.astype(np.int32)
@@ -160,7 +199,7 @@ class Pardiso:
             self._pattern = (upper.indptr.copy(), upper.indices.copy())
             self.analyses += 1
         self._call(22)
-        return PardisoFactor(self, upper.shape)
+        return PardisoFactor(self, K.shape, upper.shape[0])
 
     def release(self) -> None:
         """Free PARDISO's memory of this instance (also done when it is garbage collected)."""
@@ -170,13 +209,21 @@ class Pardiso:
 
 
 class PardisoFactor:
-    """The current factorization of a `Pardiso` instance: ``solve(b)`` for (n,) or (n, k)."""
+    """The current factorization of a `Pardiso` instance: ``solve(b)`` for (n,) or (n, k);
+    an augmented system (``size`` > n) gets zeros appended to ``b`` and its first n rows
+    returned."""
 
-    def __init__(self, solver: Pardiso, shape: tuple[int, int]) -> None:
-        self.solver, self.shape = solver, shape
+    def __init__(self, solver: Pardiso, shape: tuple[int, int], size: int) -> None:
+        self.solver, self.shape, self.size = solver, shape, size
 
     def solve(self, b: NDArray) -> NDArray[np.float64]:
-        return self.solver._call(33, b)
+        b = np.asarray(b, float)
+        n = self.shape[0]
+        if self.size == n:
+            return self.solver._call(33, b)
+        padded = np.zeros((self.size, *b.shape[1:]))
+        padded[:n] = b
+        return self.solver._call(33, padded)[:n]
 
 
 def resolve_backend(backend: str, n: int) -> str:

@@ -425,8 +425,9 @@ class Simulation:
         A file of held nodes and directions (`fem.engine.boundary.read_constraints`), added to
         the chest wall's.
     linear_solver : {"auto", "superlu", "pardiso"}
-        Newton's sparse factorization (`fem.engine.linear`): ``auto`` takes MKL PARDISO for
-        real-size meshes when the optional ``mkl`` wheel is installed, SuperLU otherwise.
+        Newton's sparse factorization (`fem.engine.linear`): ``auto`` takes MKL PARDISO from
+        1,000 DOFs on (the cohort's meshes too) when the optional ``mkl`` wheel is installed,
+        SuperLU otherwise.
     """
 
     materials: Mapping[str, Material | Mapping[str, Any]] = field(

@@ -23,7 +23,15 @@ from scipy.linalg import lu_factor, lu_solve
 from scipy.sparse.linalg import LinearOperator, cg, splu
 
 from fem.engine.assembly import HyperelasticBody, Model
-from fem.engine.linear import Pardiso, resolve_backend, superlu
+from fem.engine.linear import (
+    Pardiso,
+    Tangent,
+    condensed,
+    constrained,
+    resolve_backend,
+    submatrix,
+    superlu,
+)
 
 #: Body force of gravity for water-like tissue: rho g = 1000 kg/m^3 * 9.81 m/s^2 = 9.81e-6 N/mm^3,
 #: i.e. 9.81 in the solver's force unit (Pa mm^2 = 1e-6 N) per mm^3.
@@ -172,7 +180,7 @@ class ReusedFactorization:
         return apply
 
     def solve(
-        self, K: sparse.spmatrix, b: NDArray, keep: NDArray[np.bool_] | None = None
+        self, K: Tangent, b: NDArray, keep: NDArray[np.bool_] | None = None
     ) -> NDArray[np.float64]:
         """Solve ``constrained(K, keep) d = b`` (``b`` is zero on the held DOFs)."""
         keep = np.ones(K.shape[0], bool) if keep is None else keep
@@ -185,7 +193,8 @@ class ReusedFactorization:
                 nonlocal iterations
                 iterations += 1
 
-            x, info = cg(A, b, rtol=self.rtol, maxiter=self.max_iterations, M=M, callback=count)
+            A_op = LinearOperator(K.shape, A.__matmul__, dtype=float)
+            x, info = cg(A_op, b, rtol=self.rtol, maxiter=self.max_iterations, M=M, callback=count)
             self.stale = iterations > self.refactor_after
             if info == 0:
                 return x
@@ -194,7 +203,7 @@ class ReusedFactorization:
         self.factorizations += 1
         return self.lu.solve(b)
 
-    def _factorize(self, A: sparse.spmatrix):  # SuperLU or PardisoFactor: .solve, .shape
+    def _factorize(self, A: Tangent):  # SuperLU or PardisoFactor: .solve, .shape
         if resolve_backend(self.backend, A.shape[0]) == "superlu":
             return superlu(A)
         self._pardiso = self._pardiso or Pardiso()
@@ -203,18 +212,6 @@ class ReusedFactorization:
 
 #: Default settings, shared (the dataclass is frozen).
 DEFAULT_NEWTON = NewtonSettings()
-
-
-def constrained(K: sparse.spmatrix, keep: NDArray[np.bool_]) -> sparse.csr_matrix:
-    """``K`` with the rows and columns of the DOFs not in ``keep`` zeroed but their diagonal kept.
-
-    Solving with it leaves those DOFs unchanged (zero right-hand side) while the matrix keeps its
-    shape and sparsity pattern, so one factorization can precondition the next active set.
-    """
-    K = K.tocsr(copy=True)
-    rows = np.repeat(np.arange(K.shape[0]), np.diff(K.indptr))
-    K.data *= (keep[rows] & keep[K.indices]) | (rows == K.indices)
-    return K
 
 
 def newton_step(
@@ -239,7 +236,7 @@ def newton_step(
 
     Parameters
     ----------
-    K : (F, F) sparse
+    K : (F, F) sparse matrix or `fem.engine.assembly.SplitTangent`
         Tangent of the free DOFs.
     g : (3N,) float
         Gradient of the potential.
@@ -283,10 +280,11 @@ def newton_step(
 MAX_SHIFT = 1e3
 
 
-def damped_step(K: sparse.spmatrix, held: NDArray[np.bool_], r: NDArray, shift: float) -> NDArray:
+def damped_step(K: Tangent, held: NDArray[np.bool_], r: NDArray, shift: float) -> NDArray:
     """Levenberg-Marquardt step ``-(K + tau diag|K|)^-1 r`` with the ``held`` DOFs fixed: for
     ``tau`` large enough a descent direction of bounded length however indefinite or nearly
     singular ``K`` is, (F,) float64."""
+    K = condensed(K)
     shifted = constrained(K + shift * sparse.diags(np.abs(K.diagonal())), ~held)
     return splu(shifted.tocsc(), permc_spec="MMD_AT_PLUS_A").solve(-np.where(held, 0.0, r))
 
@@ -372,7 +370,7 @@ def newton(
                     and np.all(trial <= upper[free] + ON_BOUND)
                 )
         if not modified:
-            K = body.tangent(x)[free][:, free]
+            K = submatrix(body.tangent(x), free)
             dx, held = newton_step(K, g, flat, free, held, lower, upper, linear)
             slope, previous = g[free] @ dx, np.inf
         shift = 1e-3
