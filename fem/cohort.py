@@ -12,7 +12,9 @@ atomically. The cohort table (``cohort.csv``), report (``cohort.json``) and summ
 (``cohort_summary.png``) are rebuilt from the finished breasts at the end of each run.
 
 With ``simulate=true`` (the default) a second stage then simulates both FE steps on every
-meshed breast (`fem.breasts.cohort_simulation`: ``<out_dir>/trajectories/``, equally resumable).
+meshed breast (`fem.breasts.cohort_simulation`: ``<out_dir>/trajectories/``, equally resumable);
+``refine=1`` simulates each on its mesh refined once (8x the elements) and records the
+positions at the breast's own nodes (`fem.breasts.cohort_simulation.simulate_refined`).
 """
 
 from __future__ import annotations
@@ -257,6 +259,10 @@ def check_settings(out_dir: Path, cfg: DictConfig) -> None:
     requested = {g: OmegaConf.to_container(cfg[g], resolve=True) for g in groups}
     path = out_dir / "cohort_config.json"
     stored = json.loads(path.read_text()) if path.exists() else {}
+    if cfg.simulate:  # the simulation's mesh refinement (folders of before it: none)
+        requested["refine"] = cfg.refine
+        if "simulation" in stored:
+            stored.setdefault("refine", 0)
     old, new = _flat({g: stored[g] for g in groups if g in stored}), _flat(requested)
     new = {k: v for k, v in new.items() if k.split(".")[0] in stored}
     differ = sorted(set(old) ^ set(new) | {k for k in set(old) & set(new) if old[k] != new[k]})
@@ -336,6 +342,8 @@ def run_cohort(cfg: DictConfig) -> dict:
     if not (isinstance(cfg.n_patients, int) and cfg.n_patients >= 1):
         raise ValueError(f"n_patients must be an integer >= 1, got {cfg.n_patients!r}")
     check_workers(cfg.workers)
+    if not (isinstance(cfg.refine, int) and cfg.refine >= 0):
+        raise ValueError(f"refine must be an integer >= 0, got {cfg.refine!r}")
     check_executor(cfg.executor, cfg.scheduler)
     out_dir = writable_folder(to_absolute_path(cfg.out_dir))
     generator: PhantomGenerator = instantiate(cfg.generator)
@@ -352,7 +360,7 @@ def run_cohort(cfg: DictConfig) -> dict:
         if simulation is not None:
             names = [breast_name(p, lat) for p in range(cfg.n_patients) for lat in LATERALITIES]
             report["simulation"] = simulate_cohort(
-                pool, out_dir, names, simulation, cfg.time_series, cfg.retry_failed
+                pool, out_dir, names, simulation, cfg.time_series, cfg.retry_failed, cfg.refine
             )
             print((out_dir / "trajectories" / "simulation_summary.md").read_text())
     return report

@@ -640,6 +640,7 @@ BAD_COHORT = [
      r"simulation\.materials\.fat: give young \(and poisson\) or mu and kappa"),
     (["simulate=true", "+simulation.plates.lower.origin=[0,0,0]"], SETTING,
      r"simulation\.plates\.lower\.normal must be 3 numbers"),
+    (["refine=-1"], ValueError, r"refine must be an integer >= 0, got -1"),
     (["mesher.target_elements=0"], SETTING, r"mesher\.target_elements must be at least 1, got 0"),
     (["mesher.min_quality=1.5"], SETTING, r"mesher\.min_quality must lie in \[0, 1\)"),
     (["mesher.max_attempts=0"], SETTING, r"mesher\.max_attempts must be at least 1"),

@@ -8,10 +8,12 @@ import pytest
 from hydra import compose, initialize_config_dir
 from test_cohort import CONF, _cfg
 
-from fem.breasts.cohort_simulation import simulate_breast
+from fem.breasts.cohort_simulation import simulate_breast, simulate_refined
+from fem.breasts.mesh import Mesher
 from fem.cohort import run_cohort
-from fem.contract.trajectory import NodeFlag, Trajectory
-from fem.engine.simulation import Simulation, SimulationFailed
+from fem.contract.quality import signed_volume
+from fem.contract.trajectory import NodeFlag, Tissue, Trajectory
+from fem.engine.simulation import PAPER_MATERIALS, Simulation, SimulationFailed
 from fem.simulate import simulate_file
 
 FEW_STEPS = ("simulation.unloaded_steps=3", "simulation.compression_steps=4")
@@ -110,3 +112,35 @@ def test_simulate_command_writes_trajectory_and_time_series(simulated, tmp_path)
     times = meshio.xdmf.TimeSeriesReader(tmp_path / "case.xdmf")
     _, _ = times.read_points_cells()
     assert times.num_steps == 1 + 2 + 2
+
+
+@pytest.mark.slow
+def test_refined_ground_truth_at_the_coarse_nodes(phantom):
+    """`simulate_refined`: both steps on the 8x refined mesh, recorded at the coarse mesh's
+    nodes: no covered skin node inside a plate, the rigid muscle still, the checks recorded
+    of the coarse elements; element sets are refused."""
+    volume, meta = phantom
+    coarse = Mesher(target_elements=400, tolerance=100)(volume, meta)
+    simulation = Simulation(unloaded_steps=2, compression_steps=3)
+    out = simulate_refined(simulation, coarse, 1)
+    assert out.unloaded.shape == (2, coarse.n_nodes, 3)
+    assert out.compressed.shape == (3, coarse.n_nodes, 3)
+    sim = out.metadata["simulation"]
+    assert sim["refine_levels"] == 1 and sim["refined_tetrahedra"] == 8 * coarse.n_cells
+    assert out.compression_ratio[-1] == pytest.approx(meta["target_compression_ratio"])
+    x, start = out.compressed[-1], out.unloaded[-1]
+    skin = coarse.flagged(NodeFlag.SKIN)
+    for origin, normal, axis in out.plates[-1]:
+        covered = (x[skin] - origin) @ axis > 1e-9
+        assert ((x[skin[covered]] - origin) @ normal).min() > -1e-9
+    ratio = signed_volume(x, coarse.cells) / signed_volume(coarse.points, coarse.cells)
+    assert sim["min_element_volume_ratio"] == pytest.approx(ratio.min())
+    muscle = np.setdiff1d(
+        coarse.cells[coarse.tissue == Tissue.MUSCLE], coarse.flagged(NodeFlag.MUSCLE_INTERFACE)
+    )
+    assert np.abs(x[muscle] - start[muscle]).max() == 0.0
+    plain = simulation(coarse)  # the coarse mesh's own answer differs
+    assert np.abs(plain.compressed[-1] - x).max() > 0.01
+    sets = Simulation(materials={**PAPER_MATERIALS, "fat": {"young": 1100.0, "elements": "f.txt"}})
+    with pytest.raises(ValueError, match=r"simulation\.materials\.fat\.elements: element sets"):
+        simulate_refined(sets, coarse, 1)

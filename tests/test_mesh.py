@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 import skfem
 
-from fem.breasts.mesh import Mesher, bcc_lattice
+from fem.breasts.mesh import Mesher, bcc_lattice, refine
 from fem.breasts.phantom import PhantomGenerator
 from fem.contract.quality import boundary_faces, dihedral_angles, radius_ratio, signed_volume
 from fem.contract.trajectory import TISSUE_BIT, NodeFlag, Tissue
@@ -121,3 +121,24 @@ def test_many_breasts_meet_mesh_contract():
             assert abs(info["volume_error"]) < 0.05
             assert mesh.flagged(NodeFlag.MUSCLE_INTERFACE).size > 0
             assert mesh.flagged(NodeFlag.UPPER_CONTACT).size > 0
+
+
+def test_refine_keeps_geometry_tissue_and_the_coarse_nodes(breast_mesh):
+    """Nested refinement (`refine`): eight children per element in their parent, the coarse
+    nodes first and unmoved, the same volume per tissue, the interface and skin kept."""
+    fine, parent = refine(breast_mesh, 1)
+    n = breast_mesh.n_nodes
+    assert fine.n_cells == 8 * breast_mesh.n_cells
+    np.testing.assert_array_equal(fine.points[:n], breast_mesh.points)
+    assert np.all(np.bincount(parent, minlength=breast_mesh.n_cells) == 8)
+    assert signed_volume(fine.points, fine.cells).min() > 0
+    for tissue in (Tissue.FAT, Tissue.GLAND, Tissue.MUSCLE):
+        coarse_v = signed_volume(breast_mesh.points, breast_mesh.cells)[
+            breast_mesh.tissue == tissue
+        ]
+        fine_v = signed_volume(fine.points, fine.cells)[fine.tissue == tissue]
+        assert fine_v.sum() == pytest.approx(coarse_v.sum(), rel=1e-12)
+    for flag in (NodeFlag.MUSCLE_INTERFACE, NodeFlag.SKIN):
+        coarse = breast_mesh.flagged(flag)
+        assert np.array_equal(fine.flagged(flag)[: len(coarse)], coarse)
+    assert len(fine.skin) == 4 * len(breast_mesh.skin)

@@ -24,6 +24,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import skfem
 from numpy.typing import NDArray
 from scipy import ndimage, sparse
 from scipy.sparse import csgraph
@@ -550,3 +551,29 @@ class Mesher:
             if not a < guess < b:
                 guess = 0.5 * (a + b)
         return guess
+
+
+def refine(traj: Trajectory, levels: int = 1) -> tuple[Trajectory, NDArray[np.int64]]:
+    """``traj``'s mesh with every tetrahedron split into eight, ``levels`` times (scikit-fem's
+    `MeshTet.refined`): the same geometry, tissue boundaries and chest wall, so a comparison
+    with the coarse mesh measures discretisation error only.
+
+    The coarse nodes keep their indices (the first ``traj.n_nodes`` nodes of the fine mesh),
+    so the fine mesh's positions at them are ``positions[:, :traj.n_nodes]``; each fine
+    element inherits the tissue of its parent, and the node flags and skin are rebuilt
+    (`annotate`).
+
+    Returns
+    -------
+    fine : Trajectory
+        The refined mesh (8^levels times the elements), with ``traj``'s metadata.
+    parent : (E_fine,) int64
+        The coarse element each fine element lies in.
+    """
+    coarse = skfem.MeshTet(traj.points.T.copy(), traj.cells.T.copy())
+    fine = coarse.refined(levels)
+    points, cells = fine.p.T.copy(), fine.t.T.copy()
+    parent = coarse.element_finder()(*points[cells].mean(axis=1).T).astype(np.int64)
+    negative = signed_volume(points, cells) < 0
+    cells[negative] = cells[negative][:, [0, 2, 1, 3]]
+    return annotate(points, cells, traj.tissue[parent], dict(traj.metadata), traj.source), parent

@@ -323,6 +323,18 @@ def _timed(step: str, seconds: dict[str, float], source: str, run: Callable[[], 
         seconds[step.split()[0]] = time.perf_counter() - t0
 
 
+def shape_changes(points: NDArray, cells: NDArray, start: NDArray, final: NDArray) -> dict:
+    """The checks recorded with a simulation: the volume change from ``start`` (the unloaded
+    shape) to ``final``, the smallest element volume ratio of ``final`` to the imaged
+    ``points`` and the largest unloaded-state displacement, mm; all (N, 3) positions."""
+    final_volumes = signed_volume(final, cells)
+    return {
+        "volume_change": float(final_volumes.sum() / signed_volume(start, cells).sum() - 1),
+        "min_element_volume_ratio": float((final_volumes / signed_volume(points, cells)).min()),
+        "max_unloaded_displacement_mm": float(np.linalg.norm(start - points, axis=1).max()),
+    }
+
+
 class SimulationFailed(RuntimeError):
     """A breast could not be simulated; ``step`` says which step, ``seconds`` what it cost."""
 
@@ -559,8 +571,6 @@ class Simulation:
                 **options,
             ),
         )
-        reference = signed_volume(start, traj.cells).sum()
-        final = result.positions[-1]
         metadata = {
             **traj.metadata,
             "simulation": {
@@ -581,15 +591,7 @@ class Simulation:
                 "plate_extent_mm": [float(e) if np.isfinite(e) else None for e in schedule.extent],
                 "compression_ratio": float(result.compression_ratio[-1]),
                 "compressed_thickness_mm": schedule.gap(1.0),
-                "volume_change": float(signed_volume(final, traj.cells).sum() / reference - 1),
-                "min_element_volume_ratio": float(
-                    (
-                        signed_volume(final, traj.cells) / signed_volume(traj.points, traj.cells)
-                    ).min()
-                ),
-                "max_unloaded_displacement_mm": float(
-                    np.linalg.norm(start - traj.points, axis=1).max()
-                ),
+                **shape_changes(traj.points, traj.cells, start, result.positions[-1]),
                 "seconds": seconds,
             },
         }
