@@ -259,9 +259,10 @@ def check_settings(out_dir: Path, cfg: DictConfig) -> None:
     requested = {g: OmegaConf.to_container(cfg[g], resolve=True) for g in groups}
     path = out_dir / "cohort_config.json"
     stored = json.loads(path.read_text()) if path.exists() else {}
-    if cfg.simulate:  # the simulation's mesh refinement (folders of before it: none)
+    if cfg.simulate:  # the simulation's mesh refinement (folders made before it: none)
+        groups += ("refine",)
         requested["refine"] = cfg.refine
-        if "simulation" in stored:
+        if stored:
             stored.setdefault("refine", 0)
     old, new = _flat({g: stored[g] for g in groups if g in stored}), _flat(requested)
     new = {k: v for k, v in new.items() if k.split(".")[0] in stored}

@@ -685,6 +685,25 @@ def test_cohort_refuses_to_resume_with_other_settings(tmp_path, no_cohort_built,
     )
 
 
+def test_cohort_of_before_the_refine_setting_resumes_unrefined_only(tmp_path, no_cohort_built):
+    """A folder recorded before ``refine`` existed was simulated unrefined: it resumes with
+    ``refine=0`` and refuses ``refine=1`` by name."""
+    import json
+
+    from fem.cohort import check_settings
+
+    folder = tmp_path / "cohort"
+    folder.mkdir()
+    check_settings(folder, _cohort_cfg(folder, "simulate=true"))
+    record = folder / "cohort_config.json"
+    stored = json.loads(record.read_text())
+    assert stored.pop("refine") == 0
+    record.write_text(json.dumps(stored))
+    check_settings(folder, _cohort_cfg(folder, "simulate=true"))
+    with pytest.raises(ValueError, match=r"refine: 0 there, 1 now"):
+        check_settings(folder, _cohort_cfg(folder, "simulate=true", "refine=1"))
+
+
 def _prediction_file(runs: Path) -> Path:
     return runs / "fold0" / "predictions" / "model.npz"
 
