@@ -116,14 +116,24 @@ def main() -> None:
         rows.append(row)
         if "failed" in row:
             print(f"| {row['tetrahedra']} | failed after {row['seconds']:.0f} s: {row['failed']} |")
-            continue
-        print(
-            f"| {row['tetrahedra']} | {row['dofs']} | {row['linear_solver']} "
-            f"| {row['unloaded_s']:.1f} | {row['compression_s']:.1f} | {row['seconds']:.1f} "
-            f"| {row['newton_iterations']} | {row['tangents']} | {row['factorizations']} "
-            f"| {row['peak_memory_mb']:.0f} | {100 * row['volume_change']:+.2f} % |",
-            flush=True,
-        )
+        else:
+            print(
+                f"| {row['tetrahedra']} | {row['dofs']} | {row['linear_solver']} "
+                f"| {row['unloaded_s']:.1f} | {row['compression_s']:.1f} | {row['seconds']:.1f} "
+                f"| {row['newton_iterations']} | {row['tangents']} | {row['factorizations']} "
+                f"| {row['peak_memory_mb']:.0f} | {100 * row['volume_change']:+.2f} % |",
+                flush=True,
+            )
+        if args.out:  # after each size: a long run stopped later keeps what it measured
+            write_json(report(args, rows), args.out)
+    exponent = report(args, rows)["exponent"]
+    if exponent is not None:
+        print(f"\ntime ~ n^{exponent:.2f} (n: tetrahedra)")
+
+
+def report(args: argparse.Namespace, rows: list[dict]) -> dict:
+    """The machine, the command, the fitted exponent of time against tetrahedra (over the
+    sizes that ran; None below two) and the rows."""
     done = [r for r in rows if "failed" not in r]
     exponent = None
     if len(done) >= 2:
@@ -132,25 +142,20 @@ def main() -> None:
                 np.log([r["tetrahedra"] for r in done]), np.log([r["seconds"] for r in done]), 1
             )[0]
         )
-        print(f"\ntime ~ n^{exponent:.2f} (n: tetrahedra, {len(done)} sizes)")
-    if args.out:
-        write_json(
-            {
-                "machine": platform.processor() or platform.machine(),
-                "command": "python benchmarks/fem_sizes.py "
-                + " ".join(
-                    [
-                        f"--breast {args.breast}",
-                        "--elements",
-                        *map(str, args.elements),
-                        f"--linear-solver {args.linear_solver}",
-                    ]
-                ),
-                "exponent": exponent,
-                "rows": rows,
-            },
-            args.out,
-        )
+    command = "python benchmarks/fem_sizes.py " + " ".join(
+        [
+            f"--breast {args.breast}",
+            "--elements",
+            *map(str, args.elements),
+            f"--linear-solver {args.linear_solver}",
+        ]
+    )
+    return {
+        "machine": platform.processor() or platform.machine(),
+        "command": command,
+        "exponent": exponent,
+        "rows": rows,
+    }
 
 
 if __name__ == "__main__":
