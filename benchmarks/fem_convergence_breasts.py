@@ -109,6 +109,13 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
     runs: dict[tuple[str, float], tuple[Trajectory, float]] = {}
+    rows: list[dict] = []
+    print(
+        "| breast | volume (cm^3) | CR | tetrahedra | unloaded RMS / p95 (mm) "
+        "| compressed RMS / p95 (mm) | finest answer's smallest cohort-element volume ratio "
+        "| time (s) |"
+    )
+    print("| --- " * 8 + "|", flush=True)
     with worker_pool(args.workers) as pool:
         futures = [
             pool.submit(simulate, n, f, args.chest_wall, args.nested)
@@ -122,60 +129,53 @@ def main() -> None:
                 print(f"failed: {exc}", flush=True)
                 continue
             runs[name, factor] = traj, seconds
-            print(f"{name} x{factor:g}: {traj.n_cells} tetrahedra, {seconds:.0f} s", flush=True)
-    print(
-        "\n| breast | volume (cm^3) | CR | tetrahedra | unloaded RMS / p95 (mm) "
-        "| compressed RMS / p95 (mm) | finest answer's smallest cohort-element volume ratio "
-        "| time (s) |"
-    )
-    print("| --- " * 8 + "|")
+            if all((name, f) in runs for f in args.factors):  # a breast's rows, as they come
+                rows += compare(name, runs, args)
+                if args.out:
+                    machine = platform.processor() or platform.machine()
+                    write_json({"machine": machine, "rows": rows}, args.out)
+
+
+def compare(
+    name: str, runs: dict[tuple[str, float], tuple[Trajectory, float]], args: argparse.Namespace
+) -> list[dict]:
+    """The rows of breast ``name`` (all its ``args.factors`` in ``runs``), printed."""
     rows = []
-    finest = max(args.factors)
-    for name in args.breasts:
-        if any((name, f) not in runs for f in args.factors):
-            continue
-        coarse, _ = runs[name, min(args.factors)]
-        reference = runs[name, finest][0]
-        ref = sample(
-            reference,
-            np.stack([reference.unloaded[-1], reference.compressed[-1]]),
-            coarse.points,
+    coarse, _ = runs[name, min(args.factors)]
+    reference = runs[name, max(args.factors)][0]
+    ref = sample(
+        reference, np.stack([reference.unloaded[-1], reference.compressed[-1]]), coarse.points
+    )
+    # the finest answer at the coarse nodes: does it invert a coarse element?
+    ratio = signed_volume(ref[1], coarse.cells) / signed_volume(coarse.points, coarse.cells)
+    for factor in sorted(args.factors):
+        traj, seconds = runs[name, factor]
+        own = sample(traj, np.stack([traj.unloaded[-1], traj.compressed[-1]]), coarse.points)
+        d = np.linalg.norm(own - ref, axis=2)  # (2, N)
+        row = {
+            "breast": name,
+            "chest_wall": args.chest_wall,
+            "nested": args.nested,
+            "factor": factor,
+            "tetrahedra": traj.n_cells,
+            "volume_cm3": traj.metadata["breast_volume_cm3"],
+            "compression_ratio": traj.metadata["target_compression_ratio"],
+            "unloaded_rms_mm": float(np.sqrt((d[0] ** 2).mean())),
+            "unloaded_p95_mm": float(np.percentile(d[0], 95)),
+            "compressed_rms_mm": float(np.sqrt((d[1] ** 2).mean())),
+            "compressed_p95_mm": float(np.percentile(d[1], 95)),
+            "reference_min_volume_ratio": float(ratio.min()),
+            "seconds": seconds,
+        }
+        rows.append(row)
+        print(
+            f"| {name} | {row['volume_cm3']:.0f} | {row['compression_ratio']:.2f} "
+            f"| {row['tetrahedra']} | {row['unloaded_rms_mm']:.2f} / {row['unloaded_p95_mm']:.2f} "
+            f"| {row['compressed_rms_mm']:.2f} / {row['compressed_p95_mm']:.2f} "
+            f"| {row['reference_min_volume_ratio']:.2f} | {seconds:.0f} |",
+            flush=True,
         )
-        for factor in sorted(args.factors):
-            traj, seconds = runs[name, factor]
-            own = sample(traj, np.stack([traj.unloaded[-1], traj.compressed[-1]]), coarse.points)
-            d = np.linalg.norm(own - ref, axis=2)  # (2, N)
-            row = {
-                "breast": name,
-                "chest_wall": args.chest_wall,
-                "nested": args.nested,
-                "factor": factor,
-                "tetrahedra": traj.n_cells,
-                "volume_cm3": traj.metadata["breast_volume_cm3"],
-                "compression_ratio": traj.metadata["target_compression_ratio"],
-                "unloaded_rms_mm": float(np.sqrt((d[0] ** 2).mean())),
-                "unloaded_p95_mm": float(np.percentile(d[0], 95)),
-                "compressed_rms_mm": float(np.sqrt((d[1] ** 2).mean())),
-                "compressed_p95_mm": float(np.percentile(d[1], 95)),
-                # the finest answer at the coarse nodes: does it invert a coarse element?
-                "reference_min_volume_ratio": float(
-                    (
-                        signed_volume(ref[1], coarse.cells)
-                        / signed_volume(coarse.points, coarse.cells)
-                    ).min()
-                ),
-                "seconds": seconds,
-            }
-            rows.append(row)
-            print(
-                f"| {name} | {row['volume_cm3']:.0f} | {row['compression_ratio']:.2f} "
-                f"| {row['tetrahedra']} | {row['unloaded_rms_mm']:.2f} / {row['unloaded_p95_mm']:.2f} "
-                f"| {row['compressed_rms_mm']:.2f} / {row['compressed_p95_mm']:.2f} "
-                f"| {row['reference_min_volume_ratio']:.2f} | {seconds:.0f} |",
-                flush=True,
-            )
-    if args.out:
-        write_json({"machine": platform.processor() or platform.machine(), "rows": rows}, args.out)
+    return rows
 
 
 if __name__ == "__main__":
