@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from scipy import sparse
 
 from fem.breasts.mesh import bcc_lattice, compact_mesh
 from fem.engine.assembly import HyperelasticBody, Model
@@ -16,6 +17,7 @@ from fem.engine.linear import (
 )
 from fem.engine.material import lame_parameters
 from fem.engine.simulation import Simulation
+from fem.engine.solver import damped_step
 
 needs_mkl = pytest.mark.skipif(mkl_pardiso() is None, reason="the optional mkl wheel is absent")
 
@@ -64,3 +66,16 @@ def test_pardiso_solves_like_superlu_and_keeps_its_analysis(tangent):
     )
     assert solver.analyses == 3 and solver.factorize(split).shape == A.shape
     solver.release()
+
+
+@pytest.mark.parametrize("backend", ["superlu", pytest.param("pardiso", marks=needs_mkl)])
+def test_damped_step_solves_the_shifted_split_tangent(tangent, backend):
+    """The Levenberg-Marquardt step of a split tangent, by either backend, is the solution of
+    the condensed ``K + tau diag|K|`` with the held DOFs fixed."""
+    split, keep = tangent
+    r = np.random.default_rng(3).standard_normal(split.shape[0])
+    d = damped_step(split, ~keep, r, 0.1, backend)
+    K = condensed(split)
+    A = constrained(K + 0.1 * sparse.diags(np.abs(K.diagonal())), keep)
+    np.testing.assert_allclose(A @ d, -np.where(keep, r, 0.0), atol=1e-9 * np.abs(r).max())
+    assert np.all(d[~keep] == 0.0)

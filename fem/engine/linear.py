@@ -76,6 +76,21 @@ def constrained(K: Tangent, keep: NDArray[np.bool_]) -> Tangent:
     return K
 
 
+def add_diagonal(K: Tangent, d: NDArray) -> Tangent:
+    """``K + diag(d)`` (a `SplitTangent`'s ``local`` gets it)."""
+    if isinstance(K, SplitTangent):
+        return SplitTangent((K.local + sparse.diags(d)).tocsr(), K.factor)
+    return (K + sparse.diags(d)).tocsr()
+
+
+def factorize(K: Tangent, backend: str = "auto"):  # SuperLU or PardisoFactor: .solve, .shape
+    """A factorization of ``K`` by ``backend`` (`resolve_backend`), with its own PARDISO
+    instance."""
+    if resolve_backend(backend, K.shape[0]) == "superlu":
+        return superlu(K)
+    return Pardiso().factorize(K)
+
+
 def superlu(K: Tangent) -> sparse.linalg.SuperLU:
     """Sparse LU of a symmetric matrix (a `SplitTangent` condensed): no pivoting first, partial
     pivoting if that fails."""

@@ -20,14 +20,15 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import sparse
 from scipy.linalg import lu_factor, lu_solve
-from scipy.sparse.linalg import LinearOperator, cg, splu
+from scipy.sparse.linalg import LinearOperator, cg
 
 from fem.engine.assembly import HyperelasticBody, Model
 from fem.engine.linear import (
     Pardiso,
     Tangent,
-    condensed,
+    add_diagonal,
     constrained,
+    factorize,
     resolve_backend,
     submatrix,
     superlu,
@@ -280,13 +281,15 @@ def newton_step(
 MAX_SHIFT = 1e3
 
 
-def damped_step(K: Tangent, held: NDArray[np.bool_], r: NDArray, shift: float) -> NDArray:
+def damped_step(
+    K: Tangent, held: NDArray[np.bool_], r: NDArray, shift: float, backend: str = "auto"
+) -> NDArray:
     """Levenberg-Marquardt step ``-(K + tau diag|K|)^-1 r`` with the ``held`` DOFs fixed: for
     ``tau`` large enough a descent direction of bounded length however indefinite or nearly
-    singular ``K`` is, (F,) float64."""
-    K = condensed(K)
-    shifted = constrained(K + shift * sparse.diags(np.abs(K.diagonal())), ~held)
-    return splu(shifted.tocsc(), permc_spec="MMD_AT_PLUS_A").solve(-np.where(held, 0.0, r))
+    singular ``K`` is, (F,) float64. Factorized by ``backend`` (`fem.engine.linear`), apart
+    from the factorization Newton reuses."""
+    shifted = constrained(add_diagonal(K, shift * np.abs(K.diagonal())), ~held)
+    return factorize(shifted, backend).solve(-np.where(held, 0.0, r))
 
 
 def newton(
@@ -375,7 +378,8 @@ def newton(
             slope, previous = g[free] @ dx, np.inf
         shift = 1e-3
         while slope >= 0 and not modified:  # indefinite tangent (buckling skin): shift it
-            dx, shift = damped_step(K, held[free], r, shift), 10 * shift
+            dx = damped_step(K, held[free], r, shift, linear.backend)
+            shift *= 10
             slope = g[free] @ dx
         step, rejected = 1.0, False
         while True:
@@ -400,7 +404,8 @@ def newton(
                     )
                 # No length of this step descends admissibly (a nearly singular tangent sends
                 # a node 100 mm away): damp the tangent, as a trust region would.
-                dx, shift, step = damped_step(K, held[free], r, shift), 10 * shift, 1.0
+                dx = damped_step(K, held[free], r, shift, linear.backend)
+                shift, step = 10 * shift, 1.0
         if rejected:
             continue
         moved = np.abs(trial - flat).max()
