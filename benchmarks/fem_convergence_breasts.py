@@ -37,6 +37,7 @@ from omegaconf import OmegaConf
 from scipy.spatial import cKDTree
 
 from fem import CONFIG_DIR
+from fem.breasts.mesh import refine
 from fem.breasts.pool import one_blas_thread, worker_pool
 from fem.contract.atomic import write_json
 from fem.contract.quality import signed_volume
@@ -77,16 +78,16 @@ def sample(fine: Trajectory, fields: np.ndarray, points: np.ndarray) -> np.ndarr
 
 @one_blas_thread
 def simulate(
-    name: str, factor: float, chest: str, refine: bool
+    name: str, factor: float, chest: str, nested: bool
 ) -> tuple[str, float, Trajectory, float]:
     generator = instantiate(OmegaConf.load(Path(CONFIG_DIR) / "generator" / "default.yaml"))
     mesher_cfg = OmegaConf.load(Path(CONFIG_DIR) / "mesher" / "default.yaml")
-    if not refine:
+    if not nested:
         mesher_cfg.target_elements = int(mesher_cfg.target_elements * factor)
         mesher_cfg.tolerance = int(mesher_cfg.tolerance * factor)
     volume, meta = generator.breast(int(name[1:5]), name[-1])
     traj = instantiate(mesher_cfg)(volume, meta)
-    if refine and factor > 1:
+    if nested and factor > 1:
         traj = refine(traj, round(np.log(factor) / np.log(8)))[0]
     t0 = time.perf_counter()
     result = Simulation(chest_wall=chest)(traj)
