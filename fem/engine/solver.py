@@ -96,8 +96,10 @@ class NewtonSettings:
         ... at most this many times (the forces of the last step are the first guess).
     max_contraction : float
         Newton first steps with the stored factorization of an earlier tangent (modified
-        Newton: no assembly, one back-substitution; held DOFs stay, and a step through a
-        bound is not taken); once the residual shrinks by less than this factor per step, or
+        Newton: no assembly, one back-substitution; held DOFs stay, and DOFs a step would
+        carry through a bound are stopped there as `newton_step` does, with that stored
+        tangent: 15 % fewer tangents on a 10k-tetrahedra breast); once the residual shrinks
+        by less than this factor per step, or
         the line search would cut such a step, it assembles the tangent and factorizes
         afresh. 0 disables the reuse (0.5 against 0: 6 instead of 101 tangents and half the
         time for a breast's unloaded state, positions within 1e-6 mm).
@@ -151,6 +153,7 @@ class ReusedFactorization:
         self._pardiso: Pardiso | None = None
         self.lu = None
         self.keep: NDArray[np.bool_] | None = None  # the DOFs free in the factor
+        self.matrix: Tangent | None = None  # the tangent factorized (all DOFs free)
         self.columns: dict[int, NDArray] = {}  # DOF j -> A0^-1 e_j
         self.stale = False
         self.factorizations = 0
@@ -200,6 +203,7 @@ class ReusedFactorization:
             if info == 0:
                 return x
         self.lu, self.keep, self.columns = self._factorize(A), keep.copy(), {}
+        self.matrix = K
         self.stale = False
         self.factorizations += 1
         return self.lu.solve(b)
@@ -364,14 +368,13 @@ def newton(
         modified = reuse and linear.lu is not None and linear.lu.shape == (r.size, r.size)
         if modified:  # a step with an earlier tangent's factorization: no assembly
             dx, previous = linear.preconditioner(~held[free])(-r), norm
+            trial = flat[free] + dx
+            if lower is not None and not (
+                np.all(trial >= lower[free] - ON_BOUND) and np.all(trial <= upper[free] + ON_BOUND)
+            ):  # ... that would carry DOFs through a bound: stop them there, same tangent
+                dx, held = newton_step(linear.matrix, g, flat, free, held, lower, upper, linear)
             slope = g[free] @ dx
             modified = slope < 0
-            if lower is not None:  # ... that must not carry a DOF through a bound
-                trial = flat[free] + dx
-                modified &= bool(
-                    np.all(trial >= lower[free] - ON_BOUND)
-                    and np.all(trial <= upper[free] + ON_BOUND)
-                )
         if not modified:
             K = submatrix(body.tangent(x), free)
             dx, held = newton_step(K, g, flat, free, held, lower, upper, linear)
