@@ -15,7 +15,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from fem.contract.plates import covered, penetration
+from fem.contract.projection import plate_depth
 from fem.contract.quality import signed_volume
 from fem.contract.trajectory import NodeFlag, Trajectory
 from mammo_net.predictor import BreastShapes
@@ -62,12 +62,7 @@ def plate_penetration(points: NDArray, skin: NDArray, plates: NDArray) -> NDArra
         The deepest `fem.contract.plates.penetration` of each node into a plate covering it,
         0 when it lies in front of both plates or is covered by neither.
     """
-    p = points[skin]
-    depth = np.zeros(len(p))
-    for plate in plates:
-        inside = np.where(covered(p, plate), penetration(p, plate), 0.0)
-        depth = np.maximum(depth, inside)
-    return depth
+    return plate_depth(points, skin, plates).max(axis=0)
 
 
 def check_shape(

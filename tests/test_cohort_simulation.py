@@ -8,7 +8,11 @@ import pytest
 from hydra import compose, initialize_config_dir
 from test_cohort import CONF, _cfg
 
-from fem.breasts.cohort_simulation import simulate_breast, simulate_refined
+from fem.breasts.cohort_simulation import (
+    REFINED_MIN_VOLUME_RATIO,
+    simulate_breast,
+    simulate_refined,
+)
 from fem.breasts.mesh import Mesher
 from fem.cohort import run_cohort
 from fem.contract.quality import signed_volume
@@ -117,8 +121,9 @@ def test_simulate_command_writes_trajectory_and_time_series(simulated, tmp_path)
 @pytest.mark.slow
 def test_refined_ground_truth_at_the_coarse_nodes(phantom):
     """`simulate_refined`: both steps on the 8x refined mesh, recorded at the coarse mesh's
-    nodes: no covered skin node inside a plate, the rigid muscle still, the checks recorded
-    of the coarse elements; element sets are refused."""
+    nodes and projected onto valid coarse shapes: no covered skin node inside a plate, no
+    coarse element below the projection's volume ratio, the rigid muscle still, the checks
+    recorded of the coarse elements; element sets are refused."""
     volume, meta = phantom
     coarse = Mesher(target_elements=400, tolerance=100)(volume, meta)
     simulation = Simulation(unloaded_steps=2, compression_steps=3)
@@ -135,6 +140,10 @@ def test_refined_ground_truth_at_the_coarse_nodes(phantom):
         assert ((x[skin[covered]] - origin) @ normal).min() > -1e-9
     ratio = signed_volume(x, coarse.cells) / signed_volume(coarse.points, coarse.cells)
     assert sim["min_element_volume_ratio"] == pytest.approx(ratio.min())
+    # the 8x answer inverts a coarse element here; the projection makes every one valid
+    projection = sim["projection"]
+    assert projection["min_element_volume_ratio_before"] < 0
+    assert ratio.min() >= REFINED_MIN_VOLUME_RATIO - 1e-9 and projection["moved_max_mm"] > 0
     muscle = np.setdiff1d(
         coarse.cells[coarse.tissue == Tissue.MUSCLE], coarse.flagged(NodeFlag.MUSCLE_INTERFACE)
     )

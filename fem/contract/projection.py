@@ -1,0 +1,274 @@
+"""Projection of a shape onto physically valid ones: no inverted element, no node inside a plate,
+the whole volume within bounds.
+
+A shape that a surrogate predicts, or a finer mesh's answer sampled at a coarser mesh's nodes
+(`fem.breasts.cohort_simulation.simulate_refined`), can turn a tetrahedron inside out or put
+skin into a plate. `project_valid` moves the nodes as little as it can until every constraint
+holds, by position-based constraint projection (Jacobi iterations, as in position-based
+dynamics): each violated constraint ``C(x) >= 0`` asks its nodes for its minimum-norm linearised
+correction ``dx = -C grad C / |grad C|^2``; a node's requests are averaged; plate constraints are
+projected exactly, last in each sweep.
+
+* element volume: ``V_e(x) >= min_volume_ratio * V_e(reference)``, with
+  ``dV/dx_a = (x_b - x_d) x (x_c - x_d) / 6``-type face normals (`volume_gradients`);
+* plates: a skin node the plate covers (`fem.contract.plates.covered`) lies on the breast's
+  side of it (`fem.contract.plates.penetration` <= 0);
+* whole volume: ``V(x) / V(reference) - 1`` within ``volume_change`` (lower, upper), moving the
+  boundary nodes along their area-weighted normals.
+
+Pure NumPy; one sweep is a few vectorised passes over the elements.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from fem.contract.plates import NORMAL, covered, penetration
+from fem.contract.quality import signed_volume
+
+#: Volume ratio asked of a violated element beyond ``min_volume_ratio`` (the linearised
+#: correction undershoots a cubic constraint; aiming past it converges in fewer sweeps).
+OVERSHOOT = 1.5
+
+#: Distance from a plate within which a node counts as on it, mm.
+ON_PLATE = 1e-9
+
+
+@dataclass(frozen=True)
+class Projection:
+    """A projected shape and what the projection did.
+
+    Attributes
+    ----------
+    points : (N, 3) float64
+        The valid shape, mm.
+    sweeps : int
+        Jacobi sweeps done (0: the shape was valid).
+    moved_rms_mm, moved_max_mm : float
+        RMS and largest node displacement from the input shape, mm.
+    min_volume_ratio : float
+        Smallest ``V_e / V_e(reference)`` of the result.
+    volume_change : float
+        ``V / V(reference) - 1`` of the result.
+    max_penetration_mm : float
+        Deepest skin node inside a plate covering it, mm (<= ``tolerance_mm``).
+    """
+
+    points: NDArray[np.float64]
+    sweeps: int
+    moved_rms_mm: float
+    moved_max_mm: float
+    min_volume_ratio: float
+    volume_change: float
+    max_penetration_mm: float
+
+
+class ProjectionFailed(RuntimeError):
+    """The constraints still do not hold after the allowed sweeps."""
+
+
+def volume_gradients(points: NDArray, cells: NDArray) -> NDArray[np.float64]:
+    """``dV_e / dx_a`` of each tetrahedron's signed volume, (E, 4, 3), mm^2.
+
+    The gradient at a vertex is the opposite face's area vector over three, pointing from that
+    face towards the vertex: moving the vertex along it grows the volume.
+    """
+    p = points[cells]  # (E, 4, 3)
+    g = np.empty_like(p)
+    g[:, 1] = np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]) / 6.0
+    g[:, 2] = np.cross(p[:, 3] - p[:, 0], p[:, 1] - p[:, 0]) / 6.0
+    g[:, 3] = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]) / 6.0
+    g[:, 0] = -g[:, 1:].sum(axis=1)
+    return g
+
+
+def plate_depth(points: NDArray, skin: NDArray, plates: NDArray) -> NDArray[np.float64]:
+    """Depth of each skin node inside each plate covering it, (2, S) mm (0 when not)."""
+    p = points[skin]
+    return np.stack(
+        [
+            np.where(covered(p, plate), np.maximum(penetration(p, plate), 0.0), 0.0)
+            for plate in plates
+        ]
+    )
+
+
+def project_valid(
+    cells: NDArray,
+    reference: NDArray,
+    points: NDArray,
+    skin: NDArray | None = None,
+    plates: NDArray | None = None,
+    min_volume_ratio: float = 0.1,
+    volume_change: tuple[float, float] | None = None,
+    held: tuple[NDArray, NDArray] | None = None,
+    tolerance_mm: float = 1e-6,
+    max_sweeps: int = 2000,
+) -> Projection:
+    """The shape ``points`` moved as little as position-based projection can until it is valid.
+
+    Parameters
+    ----------
+    cells : (E, 4) int
+        Tetrahedra, right-handed in ``reference``.
+    reference : (N, 3) float
+        Stress-free shape, mm: each element's volume ratio and the whole volume's change are
+        measured against it.
+    points : (N, 3) float
+        The shape to project, mm.
+    skin : (S,) int, optional
+        Nodes held outside the plates.
+    plates : (2, 3, 3) float, optional
+        Frames (origin, normal, axis) of the lower and the upper plate (`fem.contract.plates`).
+    min_volume_ratio : float
+        Smallest accepted ``V_e / V_e(reference)`` (> 0).
+    volume_change : (float, float), optional
+        Accepted range of ``V / V(reference) - 1`` of the whole mesh (e.g. the FE's own change
+        +- 1 %); None: not constrained.
+    held : ((M,) int, (M, 3) float), optional
+        Directions along which nodes do not move, one row per node and unit direction
+        (`fem.engine.constraints.HeldDirections`' rows: a chest wall's interface nodes held
+        along its normal, its muscle nodes along all three axes).
+    tolerance_mm : float
+        Plate penetration accepted, mm.
+    max_sweeps : int
+        Jacobi sweeps before giving up.
+
+    Returns
+    -------
+    Projection
+
+    Raises
+    ------
+    ValueError
+        Inconsistent shapes or settings.
+    ProjectionFailed
+        Some constraint still fails after ``max_sweeps`` sweeps.
+    """
+    cells = np.asarray(cells, np.int64)
+    x0 = np.asarray(points, np.float64)
+    reference = np.asarray(reference, np.float64)
+    if x0.shape != reference.shape or x0.ndim != 2 or x0.shape[1] != 3:
+        raise ValueError(f"points {x0.shape} and reference {reference.shape} must both be (N, 3)")
+    if not 0 < min_volume_ratio < 1:
+        raise ValueError(f"min_volume_ratio must lie in (0, 1), got {min_volume_ratio!r}")
+    if (plates is None) != (skin is None):
+        raise ValueError("plates and skin go together")
+    if volume_change is not None and not volume_change[0] < volume_change[1]:
+        raise ValueError(f"volume_change must be (lower, upper), got {volume_change!r}")
+    v_ref = signed_volume(reference, cells)
+    if (v_ref <= 0).any():
+        raise ValueError(f"{int((v_ref <= 0).sum())} reference elements are not right-handed")
+    target = min_volume_ratio * v_ref
+    total_ref = v_ref.sum()
+    free = free_projectors(len(x0), held)  # (N, 3, 3)
+    x = x0.copy()
+    sweeps = 0
+    for sweeps in range(max_sweeps + 1):
+        volume = signed_volume(x, cells)
+        bad = volume < target
+        total = volume.sum() / total_ref - 1.0
+        off_volume = volume_change is not None and not (
+            volume_change[0] <= total <= volume_change[1]
+        )
+        deep = plate_depth(x, skin, plates).max(initial=0.0) if plates is not None else 0.0
+        if not bad.any() and not off_volume and deep <= tolerance_mm:
+            break
+        if sweeps == max_sweeps:
+            raise ProjectionFailed(
+                f"after {max_sweeps} sweeps: {int(bad.sum())} elements below volume ratio "
+                f"{min_volume_ratio:g}, volume change {100 * total:+.2f} %, "
+                f"{deep:.3g} mm inside a plate"
+            )
+        walls = _contact_normals(x, skin, plates) if plates is not None else None
+        x = _element_sweep(x, cells, bad, OVERSHOOT * target[bad] - volume[bad], free, walls)
+        if off_volume:
+            lower, upper = volume_change
+            margin = 0.1 * (upper - lower)  # aim inside: the linearised step lands near it
+            goal = (1.0 + np.clip(total, lower + margin, upper - margin)) * total_ref
+            x = _whole_volume_step(x, cells, goal - signed_volume(x, cells).sum(), free)
+        if plates is not None:
+            x = _plate_step(x, skin, plates)
+    moved = np.linalg.norm(x - x0, axis=1)
+    deep = plate_depth(x, skin, plates).max(initial=0.0) if plates is not None else 0.0
+    return Projection(
+        points=x,
+        sweeps=sweeps,
+        moved_rms_mm=float(np.sqrt(np.mean(moved**2))),
+        moved_max_mm=float(moved.max(initial=0.0)),
+        min_volume_ratio=float((signed_volume(x, cells) / v_ref).min()),
+        volume_change=float(signed_volume(x, cells).sum() / total_ref - 1.0),
+        max_penetration_mm=float(deep),
+    )
+
+
+def _contact_normals(x: NDArray, skin: NDArray, plates: NDArray) -> NDArray[np.float64]:
+    """Per plate, the normal (into the breast) at each node lying on it, zero elsewhere:
+    (2, N, 3)."""
+    out = np.zeros((len(plates), len(x), 3))
+    for k, plate in enumerate(plates):
+        on = covered(x[skin], plate) & (penetration(x[skin], plate) >= -ON_PLATE)
+        out[k, skin[on]] = plate[NORMAL]
+    return out
+
+
+def free_projectors(n: int, held: tuple[NDArray, NDArray] | None) -> NDArray[np.float64]:
+    """Per node, the orthogonal projector onto the directions it may move in (the complement
+    of the span of its held directions), (N, 3, 3)."""
+    span = np.zeros((n, 3, 3))
+    if held is not None:
+        nodes, directions = np.asarray(held[0], np.int64), np.asarray(held[1], np.float64)
+        np.add.at(span, nodes, directions[:, :, None] * directions[:, None, :])
+    values, vectors = np.linalg.eigh(span)
+    vectors = vectors * (values <= 1e-9)[:, None, :]  # the eigenvectors no held direction spans
+    return vectors @ np.swapaxes(vectors, 1, 2)
+
+
+def _element_sweep(
+    x: NDArray,
+    cells: NDArray,
+    bad: NDArray,
+    deficit: NDArray,
+    free: NDArray,
+    walls: NDArray | None = None,
+) -> NDArray[np.float64]:
+    """One Jacobi pass over the elements ``bad``: each asks ``deficit`` (B,) mm^3 more volume
+    of its vertices, along the directions they may move in (``free``: `free_projectors`); a
+    node takes the mean of its requests. A vertex on a plate (``walls``: `_contact_normals`)
+    is not asked to move into it: the gradient's component into the plate is dropped, so the
+    other vertices make the volume."""
+    nodes = cells[bad]
+    g = np.einsum("eaij,eaj->eai", free[nodes], volume_gradients(x, nodes))  # (B, 4, 3)
+    for normals in () if walls is None else walls:
+        n = normals[nodes]  # (B, 4, 3), zero off the plate
+        into = np.minimum(np.einsum("eaj,eaj->ea", g, n), 0.0)
+        g -= into[:, :, None] * n
+    norm2 = np.einsum("eaj,eaj->e", g, g)
+    step = (deficit / np.maximum(norm2, 1e-30))[:, None, None] * g
+    out = np.zeros_like(x)
+    np.add.at(out, nodes.ravel(), step.reshape(-1, 3))
+    count = np.bincount(nodes.ravel(), minlength=len(x))
+    return x + out / np.maximum(count, 1)[:, None]
+
+
+def _whole_volume_step(
+    x: NDArray, cells: NDArray, deficit: float, free: NDArray
+) -> NDArray[np.float64]:
+    """The minimum-norm linearised step that adds ``deficit`` mm^3 to the whole volume: the
+    nodes along the sum of their elements' volume gradients (interior nodes' cancel), in the
+    directions they may move in."""
+    g = np.zeros_like(x)
+    np.add.at(g, cells.ravel(), volume_gradients(x, cells).reshape(-1, 3))
+    g = np.einsum("nij,nj->ni", free, g)
+    return x + deficit / max(float(np.einsum("ij,ij->", g, g)), 1e-30) * g
+
+
+def _plate_step(x: NDArray, skin: NDArray, plates: NDArray) -> NDArray:
+    """Skin nodes inside a plate covering them moved onto its surface, along its normal."""
+    x = x.copy()
+    for plate, depth in zip(plates, plate_depth(x, skin, plates), strict=True):
+        x[skin] += depth[:, None] * plate[NORMAL]
+    return x

@@ -1,0 +1,109 @@
+"""The projection onto valid shapes: no inverted element, no node inside a plate, the whole
+volume in range, held directions kept."""
+
+import numpy as np
+import pytest
+import skfem
+
+from fem.contract.plates import cc_plates, covered, penetration
+from fem.contract.projection import (
+    ProjectionFailed,
+    free_projectors,
+    project_valid,
+    volume_gradients,
+)
+from fem.contract.quality import signed_volume
+
+
+@pytest.fixture(scope="module")
+def block() -> tuple[np.ndarray, np.ndarray]:
+    """A 10 mm cube in 5 x 5 x 5 boxes of tetrahedra, right-handed: (points, cells)."""
+    m = skfem.MeshTet.init_tensor(*(np.linspace(0.0, 10.0, 6),) * 3)
+    p, t = m.p.T.copy(), m.t.T.copy()
+    neg = signed_volume(p, t) < 0
+    t[neg] = t[neg][:, [0, 2, 1, 3]]
+    return p, t
+
+
+def test_volume_gradients_are_the_derivatives_of_the_signed_volume(block):
+    p, t = block
+    x = p + np.random.default_rng(0).normal(0, 0.3, p.shape)
+    h = 1e-6
+    for cell in t[:5]:
+        g = volume_gradients(x, cell[None])[0]
+        for a in range(4):
+            for i in range(3):
+                y = x.copy()
+                y[cell[a], i] += h
+                fd = (signed_volume(y, cell[None]) - signed_volume(x, cell[None]))[0] / h
+                assert g[a, i] == pytest.approx(fd, abs=1e-5)
+
+
+def test_a_deliberately_bad_shape_becomes_valid_and_a_valid_one_stays(block):
+    p, t = block
+    bad = p + np.random.default_rng(1).normal(0, 1.0, p.shape)  # noise of half an edge
+    assert (signed_volume(bad, t) <= 0).sum() > 100
+    out = project_valid(t, p, bad, min_volume_ratio=0.1, volume_change=(-0.01, 0.01))
+    ratio = signed_volume(out.points, t) / signed_volume(p, t)
+    assert ratio.min() >= 0.1 and out.min_volume_ratio == pytest.approx(ratio.min())
+    assert -0.01 <= out.volume_change <= 0.01
+    assert 0 < out.moved_rms_mm < 1.0  # less than the noise it undoes
+    same = project_valid(t, p, p)
+    assert same.sweeps == 0 and np.array_equal(same.points, p) and same.moved_max_mm == 0.0
+
+
+def test_lost_volume_is_given_back_within_the_range(block):
+    p, t = block
+    shrunk = 5.0 + 0.95 * (p - 5.0)  # -14 % volume, no element inverted
+    out = project_valid(t, p, shrunk, volume_change=(-0.01, 0.01))
+    assert -0.01 <= out.volume_change <= 0.01
+    assert (signed_volume(out.points, t) > 0).all()
+
+
+def test_nodes_inside_a_plate_come_out_and_held_directions_hold(block):
+    p, t = block
+    plates = cc_plates([-1.0, 0.0], [-1.0, 9.0])  # the upper plate 1 mm into the cube
+    skin = np.flatnonzero((p == 0).any(axis=1) | (p == 10).any(axis=1))
+    x = p.copy()
+    x[0, 2] = -0.5  # ... and one node through the lower plate
+    held_node = skin[np.argmax(x[skin, 2])]  # a top node held in x and y: it moves in z only
+    held = (np.array([held_node, held_node]), np.array([[1.0, 0, 0], [0, 1.0, 0]]))
+    out = project_valid(t, p, x, skin, plates, min_volume_ratio=0.05, held=held)
+    for plate in plates:
+        inside = covered(out.points[skin], plate) & (penetration(out.points[skin], plate) > 1e-6)
+        assert not inside.any()
+    assert out.max_penetration_mm <= 1e-6
+    assert out.points[0, 2] == pytest.approx(0.0)
+    np.testing.assert_array_equal(out.points[held_node, :2], x[held_node, :2])
+    assert out.points[held_node, 2] == pytest.approx(9.0)
+    assert (signed_volume(out.points, t) / signed_volume(p, t)).min() >= 0.05
+
+
+def test_free_projectors_remove_the_span_of_the_held_directions():
+    s = np.sqrt(0.5)
+    held = (
+        np.array([0, 1, 1, 2, 2]),
+        np.array([[0, 0, 1.0], [1, 0, 0], [s, s, 0], [1, 0, 0], [0, 1, 0]]),
+    )
+    P = free_projectors(4, held)
+    np.testing.assert_allclose(P[0], np.diag([1.0, 1.0, 0.0]), atol=1e-12)
+    np.testing.assert_allclose(P[1], np.diag([0.0, 0.0, 1.0]), atol=1e-12)  # x and x+y: not z
+    np.testing.assert_allclose(P[2], np.diag([0.0, 0.0, 1.0]), atol=1e-12)
+    np.testing.assert_allclose(P[3], np.eye(3), atol=1e-12)
+
+
+def test_an_impossible_shape_and_bad_settings_are_refused(block):
+    p, t = block
+    flat = p.copy()
+    flat[:, 2] = 0.0  # every element flat, every node held in z: no way out
+    held = (np.arange(len(p)), np.tile([0.0, 0.0, 1.0], (len(p), 1)))
+    with pytest.raises(ProjectionFailed, match=r"after 50 sweeps: \d+ elements below"):
+        project_valid(t, p, flat, held=held, max_sweeps=50)
+    with pytest.raises(ValueError, match=r"points \(3, 3\) and reference"):
+        project_valid(t, p, p[:3])
+    with pytest.raises(ValueError, match="min_volume_ratio must lie in"):
+        project_valid(t, p, p, min_volume_ratio=0.0)
+    with pytest.raises(ValueError, match="plates and skin go together"):
+        project_valid(t, p, p, plates=cc_plates([0.0, 0.0], [0.0, 10.0]))
+    with pytest.raises(ValueError, match="volume_change must be"):
+        project_valid(t, p, p, volume_change=(0.01, -0.01))
