@@ -19,7 +19,11 @@ cohort nodes, the finer answer inverts a cohort element).
 
 ``--nested`` refines the cohort mesh itself instead (`fem.breasts.mesh.refine`: every tetrahedron split into
 eight per level, factors 1, 8, 64), so all meshes have the same geometry, tissue boundaries
-and held chest wall and the differences are discretisation error only.
+and held chest wall and the differences are discretisation error only. A refined run is the
+cohort's refined ground truth (`fem.breasts.cohort_simulation.simulate_refined`): recorded at
+the cohort nodes and projected onto valid cohort shapes; its rows carry how far the projection
+moved the nodes (RMS and maximum over the steps, mm), and the volume-ratio column is of the
+answer before the projection.
 """
 
 from __future__ import annotations
@@ -37,7 +41,7 @@ from omegaconf import OmegaConf
 from scipy.spatial import cKDTree
 
 from fem import CONFIG_DIR
-from fem.breasts.mesh import refine
+from fem.breasts.cohort_simulation import simulate_refined
 from fem.breasts.pool import one_blas_thread, worker_pool
 from fem.contract.atomic import write_json
 from fem.contract.quality import signed_volume
@@ -87,10 +91,9 @@ def simulate(
         mesher_cfg.tolerance = int(mesher_cfg.tolerance * factor)
     volume, meta = generator.breast(int(name[1:5]), name[-1])
     traj = instantiate(mesher_cfg)(volume, meta)
-    if nested and factor > 1:
-        traj = refine(traj, round(np.log(factor) / np.log(8)))[0]
+    levels = round(np.log(factor) / np.log(8)) if nested else 0
     t0 = time.perf_counter()
-    result = Simulation(chest_wall=chest)(traj)
+    result = simulate_refined(Simulation(chest_wall=chest), traj, levels)
     return name, factor, result, time.perf_counter() - t0
 
 
@@ -147,8 +150,12 @@ def compare(
     ref = sample(
         reference, np.stack([reference.unloaded[-1], reference.compressed[-1]]), coarse.points
     )
-    # the finest answer at the coarse nodes: does it invert a coarse element?
+    # the finest answer at the coarse nodes: does it invert a coarse element (before the
+    # projection of a nested answer, which then moved it by ``projection``)?
     ratio = signed_volume(ref[1], coarse.cells) / signed_volume(coarse.points, coarse.cells)
+    projection = reference.metadata["simulation"].get("projection")
+    if projection is not None:
+        ratio = np.array([projection["min_element_volume_ratio_before"]])
     for factor in sorted(args.factors):
         traj, seconds = runs[name, factor]
         own = sample(traj, np.stack([traj.unloaded[-1], traj.compressed[-1]]), coarse.points)
@@ -158,7 +165,7 @@ def compare(
             "chest_wall": args.chest_wall,
             "nested": args.nested,
             "factor": factor,
-            "tetrahedra": traj.n_cells,
+            "tetrahedra": traj.metadata["simulation"].get("refined_tetrahedra", traj.n_cells),
             "volume_cm3": traj.metadata["breast_volume_cm3"],
             "compression_ratio": traj.metadata["target_compression_ratio"],
             "unloaded_rms_mm": float(np.sqrt((d[0] ** 2).mean())),
@@ -168,6 +175,9 @@ def compare(
             "reference_min_volume_ratio": float(ratio.min()),
             "seconds": seconds,
         }
+        if projection is not None:
+            row["projection_moved_rms_mm"] = projection["moved_rms_mm"]
+            row["projection_moved_max_mm"] = projection["moved_max_mm"]
         rows.append(row)
         print(
             f"| {name} | {row['volume_cm3']:.0f} | {row['compression_ratio']:.2f} "

@@ -2,12 +2,16 @@
 
     python benchmarks/fem_sizes.py --breast P0001_L --elements 2250 10000 40000 100000 \
         --out results/fem/sizes.json
+    python benchmarks/fem_sizes.py --elements 10000 40000 --steps 20 20 --against 100 70
 
 The breast's segmentation (the cohort's generator) is meshed with ``target_elements`` set to
 each size (`fem.breasts.mesh.Mesher`, tolerance a ninth of it) and simulated with the paper's
-settings (`fem.engine.simulation.Simulation`: 100 unloaded-state steps, 70 compression steps
-to the breast's target ratio, friction 0.25, skin membrane, sliding chest wall, cc view) and
-``--linear-solver``. Each size runs in a fresh process, so its peak resident memory is its
+settings (`fem.engine.simulation.Simulation`: ``--steps`` recorded unloaded-state and
+compression steps, by default the paper's 100 and 70, to the breast's target ratio, friction
+0.25, skin membrane, sliding chest wall, cc view) and ``--linear-solver``. ``--against U C``
+also runs each mesh with U and C steps (untimed in the table) and reports how far the two final
+compressed shapes lie apart (RMS and maximum node distance, mm): what fewer recorded steps, a
+registration's choice, cost in accuracy (friction makes the answer depend on the load path). Each size runs in a fresh process, so its peak resident memory is its
 own; Newton iterations, tangent assemblies and factorizations are counted by wrapping the
 engine's functions. Prints a table and the exponent ``b`` of the fit ``time = a n^b`` over the
 sizes (n: tetrahedra).
@@ -60,8 +64,10 @@ def counted(counts: dict[str, int]) -> None:
     solver.ReusedFactorization._factorize = factorize_counted
 
 
-def run(name: str, elements: int, linear_solver: str) -> dict:
-    """Mesh ``name`` at about ``elements`` tetrahedra and simulate both steps (in a worker)."""
+def run(name: str, elements: int, linear_solver: str, steps: tuple[int, int] = (100, 70)) -> dict:
+    """Mesh ``name`` at about ``elements`` tetrahedra and simulate both steps with ``steps``
+    recorded (unloaded, compression) steps (in a worker); the row and the final compressed
+    shape (N, 3) under ``"final"``."""
     generator = instantiate(OmegaConf.load(Path(CONFIG_DIR) / "generator" / "default.yaml"))
     mesher = OmegaConf.load(Path(CONFIG_DIR) / "mesher" / "default.yaml")
     mesher.target_elements, mesher.tolerance = elements, max(elements // 9, 250)
@@ -75,10 +81,13 @@ def run(name: str, elements: int, linear_solver: str) -> dict:
         "tetrahedra": traj.n_cells,
         "dofs": 3 * traj.n_nodes,
         "linear_solver": resolve_backend(linear_solver, 3 * traj.n_nodes),
+        "steps": list(steps),
     }
     t0 = time.perf_counter()
     try:
-        result = Simulation(linear_solver=linear_solver)(traj)
+        result = Simulation(
+            linear_solver=linear_solver, unloaded_steps=steps[0], compression_steps=steps[1]
+        )(traj)
     except SimulationFailed as exc:
         return {**row, "failed": str(exc), "seconds": time.perf_counter() - t0, **counts}
     info = result.metadata["simulation"]
@@ -92,6 +101,7 @@ def run(name: str, elements: int, linear_solver: str) -> dict:
         "volume_change": info["volume_change"],
         "min_element_volume_ratio": info["min_element_volume_ratio"],
         "compression_ratio": info["compression_ratio"],
+        "final": result.compressed[-1],
     }
 
 
@@ -102,26 +112,44 @@ def main() -> None:
     ap.add_argument("--breast", default="P0001_L")
     ap.add_argument("--elements", nargs="+", type=int, default=[2250, 10000, 40000, 100000])
     ap.add_argument("--linear-solver", default="auto", help="auto | superlu | pardiso")
+    ap.add_argument("--steps", nargs=2, type=int, default=[100, 70], metavar=("U", "C"))
+    ap.add_argument("--against", nargs=2, type=int, default=None, metavar=("U", "C"))
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
     rows = []
     print(
-        "| tetrahedra | DOFs | solver | unloaded (s) | compression (s) | both (s) | Newton "
-        "iterations | tangents | factorizations | peak memory (MB) | volume change |"
+        "| tetrahedra | DOFs | solver | steps | unloaded (s) | compression (s) | both (s) | Newton "
+        "iterations | tangents | factorizations | peak memory (MB) | volume change "
+        "| from the --against answer, RMS / max (mm) |"
     )
-    print("| --- " * 11 + "|")
+    print("| --- " * 13 + "|")
     for elements in args.elements:
-        with ProcessPoolExecutor(max_workers=1, max_tasks_per_child=1) as pool:
-            row = pool.submit(run, args.breast, elements, args.linear_solver).result()
+        row = in_fresh_process(args.breast, elements, args.linear_solver, args.steps)
+        if args.against and "failed" not in row:
+            other = in_fresh_process(args.breast, elements, args.linear_solver, args.against)
+            if "failed" not in other:
+                d = np.linalg.norm(row["final"] - other["final"], axis=1)
+                row["against"] = {
+                    "steps": list(args.against),
+                    "seconds": other["seconds"],
+                    "rms_mm": float(np.sqrt(np.mean(d**2))),
+                    "max_mm": float(d.max()),
+                }
+        row.pop("final", None)
         rows.append(row)
         if "failed" in row:
             print(f"| {row['tetrahedra']} | failed after {row['seconds']:.0f} s: {row['failed']} |")
         else:
+            against = row.get("against")
             print(
                 f"| {row['tetrahedra']} | {row['dofs']} | {row['linear_solver']} "
+                f"| {row['steps'][0]}/{row['steps'][1]} "
                 f"| {row['unloaded_s']:.1f} | {row['compression_s']:.1f} | {row['seconds']:.1f} "
                 f"| {row['newton_iterations']} | {row['tangents']} | {row['factorizations']} "
-                f"| {row['peak_memory_mb']:.0f} | {100 * row['volume_change']:+.2f} % |",
+                f"| {row['peak_memory_mb']:.0f} | {100 * row['volume_change']:+.2f} % "
+                + (
+                    f"| {against['rms_mm']:.3f} / {against['max_mm']:.3f} |" if against else "| - |"
+                ),
                 flush=True,
             )
         if args.out:  # after each size: a long run stopped later keeps what it measured
@@ -129,6 +157,12 @@ def main() -> None:
     exponent = report(args, rows)["exponent"]
     if exponent is not None:
         print(f"\ntime ~ n^{exponent:.2f} (n: tetrahedra)")
+
+
+def in_fresh_process(name: str, elements: int, linear_solver: str, steps) -> dict:
+    """`run` in a fresh process: its peak resident memory is its own."""
+    with ProcessPoolExecutor(max_workers=1, max_tasks_per_child=1) as pool:
+        return pool.submit(run, name, elements, linear_solver, tuple(steps)).result()
 
 
 def report(args: argparse.Namespace, rows: list[dict]) -> dict:
@@ -148,6 +182,8 @@ def report(args: argparse.Namespace, rows: list[dict]) -> dict:
             "--elements",
             *map(str, args.elements),
             f"--linear-solver {args.linear_solver}",
+            f"--steps {args.steps[0]} {args.steps[1]}",
+            *([f"--against {args.against[0]} {args.against[1]}"] if args.against else []),
         ]
     )
     return {
