@@ -2,6 +2,7 @@
 
     python benchmarks/simulate_breast.py data/cohort/full/P0001_L.npz ... --repeats 5
     OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 python benchmarks/simulate_breast.py ... --linear-solver pardiso
+    python benchmarks/simulate_breast.py ... --poisson 0.4995 --repeats 1   # K/mu = 1000
 
 For each mesh, ``--repeats`` runs of `fem.engine.simulation.Simulation` with the paper's parameters
 (100 unloaded-state steps, 70 compression steps to the breast's target compression ratio,
@@ -14,10 +15,11 @@ from __future__ import annotations
 
 import argparse
 import statistics
+from dataclasses import replace
 from pathlib import Path
 
 from fem.contract.trajectory import Trajectory
-from fem.engine.simulation import Simulation, SimulationFailed
+from fem.engine.simulation import PAPER_MATERIALS, Simulation, SimulationFailed
 
 
 def main() -> None:
@@ -28,8 +30,20 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=5, help="runs per breast (median reported)")
     ap.add_argument("--friction", type=float, default=0.25)
     ap.add_argument("--linear-solver", default="auto", help="auto | superlu | pardiso")
+    ap.add_argument(
+        "--poisson",
+        type=float,
+        default=None,
+        help="Poisson's ratio of every solid tissue (0.4995: K/mu = 1000; default the paper's)",
+    )
     args = ap.parse_args()
-    simulation = Simulation(friction=args.friction, linear_solver=args.linear_solver)
+    materials = dict(PAPER_MATERIALS)
+    if args.poisson is not None:
+        for name in ("fat", "gland", "muscle"):
+            materials[name] = replace(materials[name], poisson=args.poisson)
+    simulation = Simulation(
+        materials=materials, friction=args.friction, linear_solver=args.linear_solver
+    )
     totals = []
     print(
         "| breast | volume (cm^3) | elements | unloaded (s) | compression (s) | both (s) "
