@@ -30,7 +30,7 @@ from fem.breasts.figures import simulation_summary_png
 from fem.breasts.mesh import refine
 from fem.breasts.pool import one_blas_thread
 from fem.contract.atomic import atomic_path
-from fem.contract.projection import Projection, project_valid
+from fem.contract.projection import Projection, ProjectionFailed, project_valid
 from fem.contract.quality import signed_volume
 from fem.contract.timeseries import write_time_series
 from fem.contract.trajectory import NodeFlag, Trajectory
@@ -80,6 +80,8 @@ def simulate_refined(simulation: Simulation, traj: Trajectory, levels: int) -> T
     ValueError
         Element sets (``simulation.materials.<name>.elements``) with ``levels > 0``: their
         element numbers are the coarse mesh's.
+    SimulationFailed
+        A step did not converge, or (step ``projection``) no valid coarse shape was found.
     """
     if levels == 0:
         return simulation(traj)
@@ -110,9 +112,13 @@ def simulate_refined(simulation: Simulation, traj: Trajectory, levels: int) -> T
             held=(held.nodes, held.directions),
         )
 
-    projections = [valid(x, traj.points) for x in unloaded]
     start = unloaded[-1] if len(unloaded) else traj.points
-    projections += [valid(x, start, p) for x, p in zip(compressed, result.plates, strict=True)]
+    try:
+        projections = [valid(x, traj.points) for x in unloaded]
+        projections += [valid(x, start, p) for x, p in zip(compressed, result.plates, strict=True)]
+    except ProjectionFailed as exc:  # the breast fails, the cohort goes on
+        seconds = result.metadata["simulation"]["seconds"]
+        raise SimulationFailed(traj.source, "projection", str(exc), seconds) from exc
     shapes = np.array([p.points for p in projections])
     unloaded, compressed = shapes[: len(unloaded)], shapes[len(unloaded) :]
     start = unloaded[-1] if len(unloaded) else traj.points
