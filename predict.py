@@ -9,9 +9,10 @@ The input (a Trajectory, a tetrahedral mesh or a segmentation, meshed first), re
 the compression model for each thickness (`mammo_net.predictor`).
 Writes the final shapes (VTU, and the input's format where meshio writes it), every step as an
 XDMF time series, a PNG preview in three body planes, the mapped landmarks (CSV, mm) and
-``checks.json``: the prediction time and the physical checks of every shape
-(`mammo_net.validity`: inverted elements, volume change, skin inside a plate), which also warn,
-or refuse the output with ``checks.on_violation=refuse``.
+``checks.json``: the prediction time, what the projection onto valid shapes moved
+(``projection``, on by default; ``projection=null`` writes the raw predictions) and the physical
+checks of every shape (`mammo_net.validity`: inverted elements, volume change, skin inside a
+plate), which also warn, or refuse the output with ``checks.on_violation=refuse``.
 """
 
 from __future__ import annotations
@@ -61,7 +62,10 @@ def predict(cfg: DictConfig) -> Path:
     start = time.perf_counter()
     shapes = predict_breast(traj, unloaded, compression, thickness)
     seconds = time.perf_counter() - start
-    record = checks(traj, shapes)
+    projected = None
+    if cfg.projection:  # onto physically valid shapes before they are checked
+        shapes, projected = instantiate(cfg.projection)(traj, shapes)
+    record = {**checks(traj, shapes), "projection": projected}
     rows = landmarks and map_landmarks(
         traj, shapes, names, points, cfg.source_to_image_mm, str(landmarks)
     )

@@ -2,22 +2,25 @@
 
 A surrogate predicts node positions one node at a time, so nothing stops it from turning a
 tetrahedron inside out, losing volume that nearly incompressible tissue cannot lose, or
-pushing skin through a compression plate. `check_shapes` measures all three on every shape
-that ``predict.py`` writes; `PhysicalChecks` (the ``checks`` settings of ``conf/predict.yaml``)
-decides whether a violation is a warning or refuses the output.
+pushing skin through a compression plate. `ValidityProjection` (the ``projection`` settings
+of ``conf/predict.yaml``) first moves every predicted shape onto a valid one
+(`fem.contract.projection.project_valid`); `check_shapes` then measures all three on every
+shape that ``predict.py`` writes, and `PhysicalChecks` (the ``checks`` settings) decides
+whether a violation is a warning or refuses the output.
 """
 
 from __future__ import annotations
 
 import warnings
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
 
-from fem.contract.projection import plate_depth
+from fem.contract.projection import Projection, ProjectionFailed, plate_depth, project_valid
 from fem.contract.quality import signed_volume
 from fem.contract.trajectory import NodeFlag, Trajectory
+from fem.engine.boundary import chest_wall
 from mammo_net.predictor import BreastShapes
 
 
@@ -183,3 +186,79 @@ class PhysicalChecks:
             "violations": violations,
             "settings": asdict(self),
         }
+
+
+@dataclass(frozen=True)
+class ValidityProjection:
+    """Predicted shapes moved as little as they need to be physically valid, every recorded
+    step (`fem.contract.projection.project_valid`): each element's volume at least
+    ``min_volume_ratio`` of its reference, no skin node inside a plate covering it, the whole
+    volume within ``volume_tolerance`` of its reference, and the chest wall held as the FE
+    holds it (the sliding wall: muscle nodes still, interface nodes along the wall; nothing
+    when the mesh has no chest wall). References: the imaged mesh for the unloaded-state
+    steps, the (projected) unloaded shape for the compression steps.
+
+    This is the ``projection`` node of ``conf/predict.yaml``; its keys are these arguments.
+    """
+
+    min_volume_ratio: float = 0.05
+    volume_tolerance: float = 0.01
+
+    def __post_init__(self) -> None:
+        if not 0 < self.min_volume_ratio < 1:
+            raise ValueError(
+                f"projection.min_volume_ratio must lie in (0, 1), got {self.min_volume_ratio!r}"
+            )
+        if not self.volume_tolerance > 0:
+            raise ValueError(
+                f"projection.volume_tolerance must be > 0, got {self.volume_tolerance!r}"
+            )
+
+    def __call__(self, traj: Trajectory, shapes: BreastShapes) -> tuple[BreastShapes, dict]:
+        """The projected shapes, and the record to store with them: steps moved, the largest
+        RMS and maximum node displacement, mm, and the settings.
+
+        Raises
+        ------
+        fem.contract.projection.ProjectionFailed
+            No valid shape was found for a step.
+        """
+        skin = traj.flagged(NodeFlag.SKIN)
+        tolerance = (-self.volume_tolerance, self.volume_tolerance)
+
+        def valid(x: NDArray, reference: NDArray, plates: NDArray | None = None) -> Projection:
+            try:  # the wall as the step starting from ``reference`` holds it
+                wall = chest_wall(traj, reference)
+                held = (wall.nodes, wall.directions)
+            except ValueError:  # no chest wall in this mesh: nothing held
+                held = None
+            try:
+                return project_valid(
+                    traj.cells,
+                    reference,
+                    x.astype(np.float64),
+                    None if plates is None else skin,
+                    plates,
+                    self.min_volume_ratio,
+                    tolerance,
+                    held,
+                )
+            except ProjectionFailed as exc:
+                step = "unloaded state" if plates is None else "compression"
+                raise ProjectionFailed(f"{traj.source}: {step}: no valid shape: {exc}") from exc
+
+        done = [valid(x, traj.points) for x in shapes.unloaded]
+        unloaded = np.array([p.points for p in done], np.float32).reshape(shapes.unloaded.shape)
+        start = unloaded[-1].astype(np.float64) if len(unloaded) else traj.points
+        compressed = np.empty_like(shapes.compressed)
+        for k, (steps, plates) in enumerate(zip(shapes.compressed, shapes.plates, strict=True)):
+            for t, (x, frames) in enumerate(zip(steps, plates, strict=True)):
+                done.append(valid(x, start, frames))
+                compressed[k, t] = done[-1].points
+        record = {
+            "steps_moved": int(sum(p.sweeps > 0 for p in done)),
+            "moved_rms_mm": max(p.moved_rms_mm for p in done),
+            "moved_max_mm": max(p.moved_max_mm for p in done),
+            "settings": asdict(self),
+        }
+        return replace(shapes, unloaded=unloaded, compressed=compressed), record

@@ -94,11 +94,11 @@ def test_free_projectors_remove_the_span_of_the_held_directions():
 
 def test_an_impossible_shape_and_bad_settings_are_refused(block):
     p, t = block
-    flat = p.copy()
-    flat[:, 2] = 0.0  # every element flat, every node held in z: no way out
-    held = (np.arange(len(p)), np.tile([0.0, 0.0, 1.0], (len(p), 1)))
+    # both plates at z = 5 squeeze the whole surface into one plane: it encloses no volume
+    skin = np.flatnonzero((p == 0).any(axis=1) | (p == 10).any(axis=1))
+    plates = cc_plates([-1.0, 5.0], [-1.0, 5.0])
     with pytest.raises(ProjectionFailed, match=r"after 50 sweeps: \d+ elements below"):
-        project_valid(t, p, flat, held=held, max_sweeps=50)
+        project_valid(t, p, p, skin, plates, max_sweeps=50)
     with pytest.raises(ValueError, match=r"points \(3, 3\) and reference"):
         project_valid(t, p, p[:3])
     with pytest.raises(ValueError, match="min_volume_ratio must lie in"):

@@ -37,9 +37,10 @@ from fem.contract.trajectory import NodeFlag, Trajectory
 from fem.engine.boundary import chest_wall, read_constraints
 from fem.engine.simulation import Simulation, SimulationFailed, shape_changes
 
-#: Smallest element volume ratio (to the imaged mesh) of a refined ground truth at the coarse
-#: nodes (`simulate_refined`): below every cc cohort breast's own FE answer (0.039 at least,
-#: 0.39 the median), so the projection moves only what a coarse element cannot be.
+#: Smallest element volume ratio (to the step's start) of a refined ground truth at the coarse
+#: nodes (`simulate_refined`): below every cc cohort breast's own FE answer (to the imaged
+#: mesh: 0.039 at least, 0.39 the median), so the projection moves only what a coarse element
+#: cannot be.
 REFINED_MIN_VOLUME_RATIO = 0.03
 
 COLUMNS = (
@@ -68,8 +69,8 @@ def simulate_refined(simulation: Simulation, traj: Trajectory, levels: int) -> T
     Sampled at the coarse nodes, the fine answer can invert coarse elements (the fine mesh
     folds where a coarse element cannot, docs/fem-convergence.md), so every recorded shape is
     projected onto valid coarse shapes (`fem.contract.projection.project_valid`: each
-    element's volume ratio to the imaged mesh at least `REFINED_MIN_VOLUME_RATIO`, no skin
-    node inside a plate, the chest wall's muscle and interface nodes held). The metadata's
+    element's volume ratio to the step's start at least `REFINED_MIN_VOLUME_RATIO`, no skin
+    node inside a plate, the chest wall held as the step holds it). The metadata's
     checks are of the coarse mesh's elements after the projection; ``simulation`` also says
     what ran (``refine_levels``, ``refined_tetrahedra``) and what the projection did
     (``projection``: the smallest volume ratio before it, steps it moved, the largest RMS and
@@ -104,7 +105,7 @@ def simulate_refined(simulation: Simulation, traj: Trajectory, levels: int) -> T
             held += read_constraints(simulation.constraints, traj.n_nodes)
         return project_valid(
             traj.cells,
-            traj.points,
+            start,
             x,
             None if plates is None else skin,
             plates,

@@ -129,9 +129,10 @@ def project_valid(
         Accepted range of ``V / V(reference) - 1`` of the whole mesh (e.g. the FE's own change
         +- 1 %); None: not constrained.
     held : ((M,) int, (M, 3) float), optional
-        Directions along which nodes do not move, one row per node and unit direction
-        (`fem.engine.constraints.HeldDirections`' rows: a chest wall's interface nodes held
-        along its normal, its muscle nodes along all three axes).
+        Directions along which nodes do not move from ``reference``, one row per node and
+        unit direction (`fem.engine.constraints.HeldDirections`' rows: a chest wall's
+        interface nodes held along its normal, its muscle nodes along all three axes); the
+        input's displacement along them is removed first, as the FE holds them.
     tolerance_mm : float
         Plate penetration accepted, mm.
     max_sweeps : int
@@ -165,7 +166,7 @@ def project_valid(
     target = min_volume_ratio * v_ref
     total_ref = v_ref.sum()
     free = free_projectors(len(x0), held)  # (N, 3, 3)
-    x = x0.copy()
+    x = reference + np.einsum("nij,nj->ni", free, x0 - reference)  # held as in ``reference``
     sweeps = 0
     for sweeps in range(max_sweeps + 1):
         volume = signed_volume(x, cells)
