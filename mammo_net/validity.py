@@ -226,12 +226,16 @@ class ValidityProjection:
         skin = traj.flagged(NodeFlag.SKIN)
         tolerance = (-self.volume_tolerance, self.volume_tolerance)
 
-        def valid(x: NDArray, reference: NDArray, plates: NDArray | None = None) -> Projection:
+        def held_from(reference: NDArray) -> tuple[NDArray, NDArray] | None:
             try:  # the wall as the step starting from ``reference`` holds it
                 wall = chest_wall(traj, reference)
-                held = (wall.nodes, wall.directions)
             except ValueError:  # no chest wall in this mesh: nothing held
-                held = None
+                return None
+            return wall.nodes, wall.directions
+
+        def valid(
+            x: NDArray, reference: NDArray, held, plates: NDArray | None = None
+        ) -> Projection:
             try:
                 return project_valid(
                     traj.cells,
@@ -247,13 +251,15 @@ class ValidityProjection:
                 step = "unloaded state" if plates is None else "compression"
                 raise ProjectionFailed(f"{traj.source}: {step}: no valid shape: {exc}") from exc
 
-        done = [valid(x, traj.points) for x in shapes.unloaded]
+        held = held_from(traj.points)
+        done = [valid(x, traj.points, held) for x in shapes.unloaded]
         unloaded = np.array([p.points for p in done], np.float32).reshape(shapes.unloaded.shape)
         start = unloaded[-1].astype(np.float64) if len(unloaded) else traj.points
+        held = held_from(start)
         compressed = np.empty_like(shapes.compressed)
         for k, (steps, plates) in enumerate(zip(shapes.compressed, shapes.plates, strict=True)):
             for t, (x, frames) in enumerate(zip(steps, plates, strict=True)):
-                done.append(valid(x, start, frames))
+                done.append(valid(x, start, held, frames))
                 compressed[k, t] = done[-1].points
         record = {
             "steps_moved": int(sum(p.sweeps > 0 for p in done)),
