@@ -99,10 +99,12 @@ class NewtonSettings:
         Newton: no assembly, one back-substitution; held DOFs stay, and DOFs a step would
         carry through a bound are stopped there as `newton_step` does, with that stored
         tangent: 15 % fewer tangents on a 10k-tetrahedra breast); once the residual shrinks
-        by less than this factor per step, or
-        the line search would cut such a step, it assembles the tangent and factorizes
-        afresh. 0 disables the reuse (0.5 against 0: 6 instead of 101 tangents and half the
-        time for a breast's unloaded state, positions within 1e-6 mm).
+        by less than this factor per step, or the line search would cut such a step, it
+        assembles the tangent and factorizes afresh, and goes on with modified steps on that
+        new factorization (a third fewer tangents again, compression 15 % faster at 10k
+        tetrahedra and at the cohort's size, positions within 1e-5 mm). 0 disables the reuse
+        (0.5 against 0: 6 instead of 101 tangents and half the time for a breast's unloaded
+        state, positions within 1e-6 mm).
     linear_solver : {"auto", "superlu", "pardiso"}
         Sparse factorization (`fem.engine.linear`): ``auto`` is MKL PARDISO from
         `fem.engine.linear.PARDISO_FROM` DOFs on when the optional ``mkl`` wheel is installed,
@@ -377,8 +379,10 @@ def newton(
             modified = slope < 0
         if not modified:
             K = submatrix(body.tangent(x), free)
+            factorized = linear.factorizations
             dx, held = newton_step(K, g, flat, free, held, lower, upper, linear)
             slope, previous = g[free] @ dx, np.inf
+            reuse |= linear.factorizations > factorized and settings.max_contraction > 0
         shift = 1e-3
         while slope >= 0 and not modified:  # indefinite tangent (buckling skin): shift it
             dx = damped_step(K, held[free], r, shift, linear.backend)
