@@ -17,7 +17,7 @@ from dataclasses import asdict, dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from fem.contract.projection import Projection, ProjectionFailed, plate_depth, project_valid
+from fem.contract.projection import ProjectionFailed, plate_depth, project_valid
 from fem.contract.quality import signed_volume
 from fem.contract.trajectory import NodeFlag, Trajectory
 from fem.engine.boundary import chest_wall
@@ -216,15 +216,11 @@ class ValidityProjection:
 
     def __call__(self, traj: Trajectory, shapes: BreastShapes) -> tuple[BreastShapes, dict]:
         """The projected shapes, and the record to store with them: steps moved, the largest
-        RMS and maximum node displacement, mm, and the settings.
-
-        Raises
-        ------
-        fem.contract.projection.ProjectionFailed
-            No valid shape was found for a step.
-        """
+        RMS and maximum node displacement, mm, the steps no valid shape was found for (kept as
+        predicted, with a warning: the checks then report them) and the settings."""
         skin = traj.flagged(NodeFlag.SKIN)
         tolerance = (-self.volume_tolerance, self.volume_tolerance)
+        failed: list[str] = []
 
         def held_from(reference: NDArray) -> tuple[NDArray, NDArray] | None:
             try:  # the wall as the step starting from ``reference`` holds it
@@ -233,11 +229,9 @@ class ValidityProjection:
                 return None
             return wall.nodes, wall.directions
 
-        def valid(
-            x: NDArray, reference: NDArray, held, plates: NDArray | None = None
-        ) -> Projection:
+        def valid(x: NDArray, reference: NDArray, held, name: str, plates=None) -> NDArray:
             try:
-                return project_valid(
+                p = project_valid(
                     traj.cells,
                     reference,
                     x.astype(np.float64),
@@ -248,23 +242,38 @@ class ValidityProjection:
                     held,
                 )
             except ProjectionFailed as exc:
-                step = "unloaded state" if plates is None else "compression"
-                raise ProjectionFailed(f"{traj.source}: {step}: no valid shape: {exc}") from exc
+                failed.append(f"{name}: {exc}")
+                return x
+            moved.append((p.sweeps > 0, p.moved_rms_mm, p.moved_max_mm))
+            return p.points
 
+        moved: list[tuple[bool, float, float]] = []
         held = held_from(traj.points)
-        done = [valid(x, traj.points, held) for x in shapes.unloaded]
-        unloaded = np.array([p.points for p in done], np.float32).reshape(shapes.unloaded.shape)
+        unloaded = np.array(
+            [
+                valid(x, traj.points, held, f"unloaded step {t + 1}")
+                for t, x in enumerate(shapes.unloaded)
+            ],
+            np.float32,
+        ).reshape(shapes.unloaded.shape)
         start = unloaded[-1].astype(np.float64) if len(unloaded) else traj.points
         held = held_from(start)
         compressed = np.empty_like(shapes.compressed)
         for k, (steps, plates) in enumerate(zip(shapes.compressed, shapes.plates, strict=True)):
             for t, (x, frames) in enumerate(zip(steps, plates, strict=True)):
-                done.append(valid(x, start, held, frames))
-                compressed[k, t] = done[-1].points
+                name = f"compression {shapes.thickness[k]:g} mm step {t + 1}"
+                compressed[k, t] = valid(x, start, held, name, frames)
+        if failed:
+            warnings.warn(
+                f"{traj.source}: no valid shape found for {len(failed)} step(s), written as "
+                f"predicted; first: {failed[0]}",
+                stacklevel=2,
+            )
         record = {
-            "steps_moved": int(sum(p.sweeps > 0 for p in done)),
-            "moved_rms_mm": max(p.moved_rms_mm for p in done),
-            "moved_max_mm": max(p.moved_max_mm for p in done),
+            "steps_moved": int(sum(m[0] for m in moved)),
+            "moved_rms_mm": max((m[1] for m in moved), default=0.0),
+            "moved_max_mm": max((m[2] for m in moved), default=0.0),
+            "failed_steps": failed,
             "settings": asdict(self),
         }
         return replace(shapes, unloaded=unloaded, compressed=compressed), record

@@ -5,8 +5,10 @@ import pytest
 import skfem
 
 from fem.contract.plates import cc_plates, rotate_plates
+from fem.contract.projection import ProjectionFailed, project_valid
 from fem.contract.quality import signed_volume
 from fem.contract.trajectory import NodeFlag, Tissue, Trajectory
+from mammo_net import validity
 from mammo_net.predictor import BreastShapes
 from mammo_net.validity import (
     PhysicalChecks,
@@ -89,7 +91,7 @@ def test_checks_warn_or_refuse_a_deliberately_bad_prediction():
         PhysicalChecks(on_violation="ignore")
 
 
-def test_the_projection_makes_a_deliberately_bad_prediction_valid():
+def test_the_projection_makes_a_deliberately_bad_prediction_valid(monkeypatch):
     """A block breast (fat on a muscle slab: a chest wall) whose predicted shapes have noise
     of half an edge, skin pushed 1 mm through the upper plate and 10 % of the volume lost:
     after `ValidityProjection` no element is inverted, no skin node lies inside a plate, the
@@ -130,5 +132,17 @@ def test_the_projection_makes_a_deliberately_bad_prediction_valid():
     np.testing.assert_allclose(out.compressed[0, 0, held], p[held], atol=1e-5)
     np.testing.assert_allclose(out.compressed[0, 0, wall, 1], 2.0, atol=1e-5)
     assert record["steps_moved"] == 1 and 0 < record["moved_rms_mm"] < 1.0
+
+    # a step without a valid shape stays as predicted, with a warning and a record
+    def fail_compression(*args):
+        if args[4] is not None:  # plates: a compression step
+            raise ProjectionFailed("after 2000 sweeps: ...")
+        return project_valid(*args)
+
+    monkeypatch.setattr(validity, "project_valid", fail_compression)
+    with pytest.warns(UserWarning, match=r"block.vtu: no valid shape found for 1 step\(s\)"):
+        kept, record = ValidityProjection()(traj, shapes)
+    np.testing.assert_array_equal(kept.compressed, shapes.compressed)
+    assert record["failed_steps"] == ["compression 10 mm step 1: after 2000 sweeps: ..."]
     with pytest.raises(ValueError, match=r"projection\.min_volume_ratio must lie in"):
         ValidityProjection(min_volume_ratio=1.5)

@@ -164,6 +164,7 @@ def project_valid(
     if (v_ref <= 0).any():
         raise ValueError(f"{int((v_ref <= 0).sum())} reference elements are not right-handed")
     target = min_volume_ratio * v_ref
+    size = np.cbrt(6 * np.sqrt(2) * v_ref)  # the edge of a regular tetrahedron of that volume
     total_ref = v_ref.sum()
     free = free_projectors(len(x0), held)  # (N, 3, 3)
     x = reference + np.einsum("nij,nj->ni", free, x0 - reference)  # held as in ``reference``
@@ -185,12 +186,14 @@ def project_valid(
                 f"{deep:.3g} mm inside a plate"
             )
         walls = _contact_normals(x, skin, plates) if plates is not None else None
-        x = _element_sweep(x, cells, bad, OVERSHOOT * target[bad] - volume[bad], free, walls)
+        deficit = OVERSHOOT * target[bad] - volume[bad]
+        x = _element_sweep(x, cells, bad, deficit, size[bad], free, walls)
         if off_volume:
             lower, upper = volume_change
             margin = 0.1 * (upper - lower)  # aim inside: the linearised step lands near it
             goal = (1.0 + np.clip(total, lower + margin, upper - margin)) * total_ref
-            x = _whole_volume_step(x, cells, goal - signed_volume(x, cells).sum(), free)
+            deficit = goal - signed_volume(x, cells).sum()
+            x = _whole_volume_step(x, cells, deficit, float(np.median(size)), free)
         if plates is not None:
             x = _plate_step(x, skin, plates)
     moved = np.linalg.norm(x - x0, axis=1)
@@ -233,12 +236,14 @@ def _element_sweep(
     cells: NDArray,
     bad: NDArray,
     deficit: NDArray,
+    size: NDArray,
     free: NDArray,
     walls: NDArray | None = None,
 ) -> NDArray[np.float64]:
     """One Jacobi pass over the elements ``bad``: each asks ``deficit`` (B,) mm^3 more volume
-    of its vertices, along the directions they may move in (``free``: `free_projectors`); a
-    node takes the mean of its requests. A vertex on a plate (``walls``: `_contact_normals`)
+    of its vertices, along the directions they may move in (``free``: `free_projectors`), at
+    most its ``size`` (B,) mm per vertex (a nearly flat element's linearised request can be
+    unbounded); a node takes the mean of its requests. A vertex on a plate (``walls``: `_contact_normals`)
     is not asked to move into it: the gradient's component into the plate is dropped, so the
     other vertices make the volume."""
     nodes = cells[bad]
@@ -249,6 +254,8 @@ def _element_sweep(
         g -= into[:, :, None] * n
     norm2 = np.einsum("eaj,eaj->e", g, g)
     step = (deficit / np.maximum(norm2, 1e-30))[:, None, None] * g
+    length = np.linalg.norm(step, axis=2, keepdims=True)  # (B, 4, 1)
+    step *= np.minimum(1.0, size[:, None, None] / np.maximum(length, 1e-30))
     out = np.zeros_like(x)
     np.add.at(out, nodes.ravel(), step.reshape(-1, 3))
     count = np.bincount(nodes.ravel(), minlength=len(x))
@@ -256,15 +263,17 @@ def _element_sweep(
 
 
 def _whole_volume_step(
-    x: NDArray, cells: NDArray, deficit: float, free: NDArray
+    x: NDArray, cells: NDArray, deficit: float, size: float, free: NDArray
 ) -> NDArray[np.float64]:
     """The minimum-norm linearised step that adds ``deficit`` mm^3 to the whole volume: the
     nodes along the sum of their elements' volume gradients (interior nodes' cancel), in the
-    directions they may move in."""
+    directions they may move in, at most ``size`` mm per node."""
     g = np.zeros_like(x)
     np.add.at(g, cells.ravel(), volume_gradients(x, cells).reshape(-1, 3))
     g = np.einsum("nij,nj->ni", free, g)
-    return x + deficit / max(float(np.einsum("ij,ij->", g, g)), 1e-30) * g
+    step = deficit / max(float(np.einsum("ij,ij->", g, g)), 1e-30) * g
+    longest = float(np.linalg.norm(step, axis=1).max(initial=0.0))
+    return x + step * min(1.0, size / max(longest, 1e-30))
 
 
 def _plate_step(x: NDArray, skin: NDArray, plates: NDArray) -> NDArray:
