@@ -35,6 +35,7 @@ from fem.contract.quality import signed_volume
 from fem.contract.timeseries import write_time_series
 from fem.contract.trajectory import NodeFlag, Trajectory
 from fem.engine.boundary import chest_wall, read_constraints
+from fem.engine.constraints import HeldDirections
 from fem.engine.simulation import Simulation, SimulationFailed, shape_changes
 
 #: Smallest element volume ratio (to the step's start) of a refined ground truth at the coarse
@@ -99,10 +100,13 @@ def simulate_refined(simulation: Simulation, traj: Trajectory, levels: int) -> T
     before = signed_volume(compressed[-1], traj.cells) / signed_volume(traj.points, traj.cells)
     skin = traj.flagged(NodeFlag.SKIN)
 
-    def valid(x: np.ndarray, start: np.ndarray, plates: np.ndarray | None = None) -> Projection:
-        held = chest_wall(traj, start, simulation.chest_wall)  # as the step held it
-        if simulation.constraints is not None:
-            held += read_constraints(simulation.constraints, traj.n_nodes)
+    user = (
+        read_constraints(simulation.constraints, traj.n_nodes)
+        if simulation.constraints is not None
+        else HeldDirections.none()
+    )
+
+    def valid(x: np.ndarray, start: np.ndarray, held, plates=None) -> Projection:
         return project_valid(
             traj.cells,
             start,
@@ -114,9 +118,13 @@ def simulate_refined(simulation: Simulation, traj: Trajectory, levels: int) -> T
         )
 
     start = unloaded[-1] if len(unloaded) else traj.points
-    try:
-        projections = [valid(x, traj.points) for x in unloaded]
-        projections += [valid(x, start, p) for x, p in zip(compressed, result.plates, strict=True)]
+    try:  # the chest wall as each step holds it, from that step's start
+        held = chest_wall(traj, traj.points, simulation.chest_wall) + user
+        projections = [valid(x, traj.points, held) for x in unloaded]
+        held = chest_wall(traj, start, simulation.chest_wall) + user
+        projections += [
+            valid(x, start, held, p) for x, p in zip(compressed, result.plates, strict=True)
+        ]
     except ProjectionFailed as exc:  # the breast fails, the cohort goes on
         seconds = result.metadata["simulation"]["seconds"]
         raise SimulationFailed(traj.source, "projection", str(exc), seconds) from exc

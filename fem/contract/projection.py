@@ -176,7 +176,7 @@ def project_valid(
         off_volume = volume_change is not None and not (
             volume_change[0] <= total <= volume_change[1]
         )
-        deep = plate_depth(x, skin, plates).max(initial=0.0) if plates is not None else 0.0
+        walls, deep = _plate_contact(x, skin, plates) if plates is not None else (None, 0.0)
         if not bad.any() and not off_volume and deep <= tolerance_mm:
             break
         if sweeps == max_sweeps:
@@ -185,7 +185,6 @@ def project_valid(
                 f"{min_volume_ratio:g}, volume change {100 * total:+.2f} %, "
                 f"{deep:.3g} mm inside a plate"
             )
-        walls = _contact_normals(x, skin, plates) if plates is not None else None
         deficit = OVERSHOOT * target[bad] - volume[bad]
         x = _element_sweep(x, cells, bad, deficit, size[bad], free, walls)
         if off_volume:
@@ -196,27 +195,28 @@ def project_valid(
             x = _whole_volume_step(x, cells, deficit, float(np.median(size)), free)
         if plates is not None:
             x = _plate_step(x, skin, plates)
-    moved = np.linalg.norm(x - x0, axis=1)
-    deep = plate_depth(x, skin, plates).max(initial=0.0) if plates is not None else 0.0
+    moved = np.linalg.norm(x - x0, axis=1)  # volume, total, deep: of this x (the loop's last)
     return Projection(
         points=x,
         sweeps=sweeps,
         moved_rms_mm=float(np.sqrt(np.mean(moved**2))),
         moved_max_mm=float(moved.max(initial=0.0)),
-        min_volume_ratio=float((signed_volume(x, cells) / v_ref).min()),
-        volume_change=float(signed_volume(x, cells).sum() / total_ref - 1.0),
+        min_volume_ratio=float((volume / v_ref).min()),
+        volume_change=float(total),
         max_penetration_mm=float(deep),
     )
 
 
-def _contact_normals(x: NDArray, skin: NDArray, plates: NDArray) -> NDArray[np.float64]:
-    """Per plate, the normal (into the breast) at each node lying on it, zero elsewhere:
-    (2, N, 3)."""
-    out = np.zeros((len(plates), len(x), 3))
+def _plate_contact(x: NDArray, skin: NDArray, plates: NDArray) -> tuple[NDArray[np.float64], float]:
+    """Per plate, the normal (into the breast) at each node lying on it, zero elsewhere
+    (2, N, 3), and the deepest skin node inside a plate covering it, mm."""
+    walls, deep = np.zeros((len(plates), len(x), 3)), 0.0
+    p = x[skin]
     for k, plate in enumerate(plates):
-        on = covered(x[skin], plate) & (penetration(x[skin], plate) >= -ON_PLATE)
-        out[k, skin[on]] = plate[NORMAL]
-    return out
+        depth = np.where(covered(p, plate), penetration(p, plate), -np.inf)
+        walls[k, skin[depth >= -ON_PLATE]] = plate[NORMAL]
+        deep = max(deep, float(depth.max(initial=0.0)))
+    return walls, deep
 
 
 def free_projectors(n: int, held: tuple[NDArray, NDArray] | None) -> NDArray[np.float64]:
@@ -243,9 +243,9 @@ def _element_sweep(
     """One Jacobi pass over the elements ``bad``: each asks ``deficit`` (B,) mm^3 more volume
     of its vertices, along the directions they may move in (``free``: `free_projectors`), at
     most its ``size`` (B,) mm per vertex (a nearly flat element's linearised request can be
-    unbounded); a node takes the mean of its requests. A vertex on a plate (``walls``: `_contact_normals`)
-    is not asked to move into it: the gradient's component into the plate is dropped, so the
-    other vertices make the volume."""
+    unbounded); a node takes the mean of its requests. A vertex on a plate (``walls``:
+    `_plate_contact`) is not asked to move into it: the gradient's component into the plate is
+    dropped, so the other vertices make the volume."""
     nodes = cells[bad]
     g = np.einsum("eaij,eaj->eai", free[nodes], volume_gradients(x, nodes))  # (B, 4, 3)
     for normals in () if walls is None else walls:
