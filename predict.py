@@ -50,6 +50,7 @@ def predict(cfg: DictConfig) -> Path:
     checks = instantiate(cfg.checks)
     thickness = thicknesses(cfg.thickness)
     check_laterality(cfg.laterality)
+    conditions = instantiate(cfg.conditions)
     source = Path(to_absolute_path(cfg.input))
     traj = instantiate(cfg.reader)(source)
     set_laterality(traj, cfg.laterality)
@@ -60,7 +61,7 @@ def predict(cfg: DictConfig) -> Path:
     landmarks = Path(to_absolute_path(cfg.landmarks)) if cfg.landmarks else None
     names, points = read_landmarks(landmarks) if landmarks else ([], None)
     start = time.perf_counter()
-    shapes = predict_breast(traj, unloaded, compression, thickness)
+    shapes = predict_breast(traj, unloaded, compression, thickness, conditions)
     seconds = time.perf_counter() - start
     projected = None
     if cfg.projection:  # onto physically valid shapes before they are checked

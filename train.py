@@ -22,9 +22,9 @@ from omegaconf import DictConfig
 from fem.cohort import run_cohort
 from fem.contract.atomic import atomic_path, writable_folder
 from mammo_net.callbacks import TreeBaseline
-from mammo_net.inference import network_predictor, save_predictions
+from mammo_net.inference import save_predictions
 from mammo_net.metrics import comparison
-from mammo_net.module import SurrogateModule  # importing it stores the model's config node
+from mammo_net.module import NetworkModule  # importing it stores the models' config nodes
 from mammo_net.report import write_report
 
 
@@ -52,12 +52,12 @@ def train(cfg: DictConfig) -> float:
     writable_folder(cfg.run_dir)
     L.seed_everything(cfg.seed, workers=True)
     dm = instantiate(cfg.data, data_dir=to_absolute_path(cfg.data.data_dir))
-    model: SurrogateModule = instantiate(cfg.model)
+    model: NetworkModule = instantiate(cfg.model)
     model.check_data_step(dm.hparams.step)
     ensure_cohort(cfg)
     dm.prepare_data()
     dm.setup()
-    model.set_feature_normalization(*dm.feature_statistics(), dm.schema())
+    model.adapt(dm)
     # entries without _target_: a paper experiment's parameters of a callback left out
     callbacks = [instantiate(c) for c in cfg.callbacks.values() if c and "_target_" in c]
     baselines = [c for c in callbacks if isinstance(c, TreeBaseline)]
@@ -81,12 +81,12 @@ def train(cfg: DictConfig) -> float:
         metrics = logged(trainer, baselines)
     trained = trainer.global_step > 0  # False for baseline-only runs (trainer.max_epochs=0)
     if trained:
-        metrics[f"att_blstm ({trainer.current_epoch} epochs)/fit_seconds"] = network
-    table = comparison(metrics, stage)
+        metrics[f"{model.name} ({trainer.current_epoch} epochs)/fit_seconds"] = network
+    table = comparison(metrics, stage, model.name)
     if trainer.is_global_zero:  # the validation breasts' predictions, mm, for the report
         folder = Path(cfg.run_dir) / "predictions"
         if trained:
-            save_predictions(folder / "att_blstm.npz", network_predictor(model), dm.val)
+            save_predictions(folder / f"{model.name}.npz", model.predictor(), dm.val)
         for c in baselines:
             save_predictions(folder / f"{c.name}.npz", c.predictor(), dm.val)
         with atomic_path(Path(cfg.run_dir) / "results.md") as tmp:

@@ -98,13 +98,16 @@ class FeatureSchema:
         except (ValueError, KeyError, TypeError) as exc:
             raise ValueError(f"{source}: unreadable feature schema {text!r}: {exc}") from exc
 
-    def check(self, step: str, source: str = "model") -> None:
-        """Refuse a model trained for another step or on other features than this code's."""
+    def check(
+        self, step: str, source: str = "model", expected: tuple[str, ...] | None = None
+    ) -> None:
+        """Refuse a model trained for another step or on other inputs than this code's: the
+        step's `STEP_FEATURES`, or ``expected`` (a graph model's inputs)."""
         if step != self.step:
             raise ValueError(
                 f"{source}: the model predicts the {self.step} step, not the {step} step"
             )
-        expected = STEP_FEATURES.get(step)
+        expected = STEP_FEATURES.get(step) if expected is None else expected
         if self.features != expected:
             raise ValueError(
                 f"{source}: the model was trained on the features {list(self.features)}, this "

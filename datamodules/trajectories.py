@@ -81,9 +81,10 @@ def source_stamp(source: Path) -> list[int]:
     return [stat.st_size, stat.st_mtime_ns]
 
 
-def cache_is_current(source: Path, stem: Path) -> bool:
-    """Whether ``stem``'s cache is complete (targets written last) and of ``source`` as it is."""
-    if not stem.with_suffix(".targets.npy").exists():
+def cache_is_current(source: Path, stem: Path, last: str = ".targets.npy") -> bool:
+    """Whether ``stem``'s cache is complete (its file ``last`` is written last) and of
+    ``source`` as it is."""
+    if not stem.with_suffix(last).exists():
         return False
     meta = json.loads(stem.with_suffix(".json").read_text())
     return meta.get("source_stamp") == source_stamp(source)

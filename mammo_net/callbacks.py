@@ -17,6 +17,7 @@ import numpy as np
 from lightning.pytorch.callbacks import Callback
 
 from datamodules.features import FeatureSchema
+from datamodules.graphs import MeshGraphDataModule
 from datamodules.trajectories import Breast
 from mammo_net import baselines
 from mammo_net.inference import breast_prediction
@@ -57,6 +58,11 @@ class TreeBaseline(Callback):
 
     def on_fit_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         dm = trainer.datamodule
+        if isinstance(dm, MeshGraphDataModule):
+            raise ValueError(
+                f"callbacks.{self.name}: the tree baselines train on node rows (data=default), "
+                "not on whole-breast graphs (data=graphs); set callbacks=model_checkpoint"
+            )
         X, Y = baselines.stack_rows(dm.rows(dm.train))
         t0 = time.perf_counter()
         self.model, self._predictor = self.fit(X, Y), None

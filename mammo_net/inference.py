@@ -13,18 +13,25 @@ import json
 import os
 import platform
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 
 import numpy as np
 import torch
 from numpy.typing import NDArray
 
+from datamodules.graphs import batch_graphs
 from datamodules.trajectories import Breast
 from fem.contract.atomic import atomic_path
 from fem.contract.trajectory import read_npz, reading_file
 
 PRECISIONS = ("32-true", "bf16-mixed")
+
+
+def check_precision(precision: str) -> None:
+    """Refuse a precision other than `PRECISIONS`."""
+    if precision not in PRECISIONS:
+        raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
 
 
 def network_predictor(
@@ -34,8 +41,7 @@ def network_predictor(
 
     ``precision="bf16-mixed"`` runs the matrix products in bfloat16 (autocast): 2-3x faster
     on CPUs with bfloat16 instructions (AVX512-BF16, AMX), much slower on others."""
-    if precision not in PRECISIONS:
-        raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
+    check_precision(precision)
 
     def predict(features: NDArray) -> NDArray[np.float32]:
         model.eval()
@@ -47,6 +53,27 @@ def network_predictor(
                 x = torch.as_tensor(np.array(features[start : start + batch_size]), device=device)
                 out.append(model(x).float().cpu().numpy())  # (B, T, 3)
         return np.concatenate(out)
+
+    return predict
+
+
+def graph_predictor(
+    model: torch.nn.Module, precision: str = "32-true"
+) -> Callable[[Mapping[str, NDArray]], NDArray[np.float32]]:
+    """``sample -> (N, T, 3)`` normalised predictions of a graph model on one breast's sample
+    (`datamodules.graphs.graph_sample` or its ``*_graph_inputs``; targets ignored), all nodes
+    and steps in one pass. ``precision`` as `network_predictor`'s."""
+    check_precision(precision)
+
+    def predict(sample: Mapping[str, NDArray]) -> NDArray[np.float32]:
+        model.eval()
+        device = next(model.parameters()).device
+        inputs = {k: v for k, v in sample.items() if k != "targets"}
+        batch = {k: v.to(device) for k, v in batch_graphs([inputs]).items()}
+        bf16 = precision == "bf16-mixed"
+        with torch.no_grad(), torch.autocast(device.type, torch.bfloat16, enabled=bf16):
+            out = model(batch).float()  # (T, N, 3)
+        return out.transpose(0, 1).cpu().numpy()
 
     return predict
 

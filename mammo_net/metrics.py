@@ -50,15 +50,16 @@ def summarize_breasts(per_breast: Sequence[dict[str, float]]) -> dict[str, float
     return out
 
 
-def comparison(metrics: dict[str, float], stage: str) -> str:
+def comparison(metrics: dict[str, float], stage: str, network: str = "att_blstm") -> str:
     """Markdown table of the paper's Tables 3/4: (mean, median) +- std of the per-breast RMSE,
     mm, per model, from logged metrics ``{stage}/rmse_{all_steps,last_step}_{mean,median,std}_mm``
-    (the network) and ``.../<model>`` (a baseline); fit times from ``<model>/fit_seconds``."""
+    (the network, named ``network``) and ``.../<model>`` (a baseline); fit times from
+    ``<model>/fit_seconds``."""
     rows: dict[str, dict[str, float]] = {}
     for key, value in metrics.items():
         match = re.fullmatch(rf"{stage}/rmse_(\w+)_mm(?:/(\w+))?", key)
         if match:
-            rows.setdefault(match[2] or "att_blstm", {})[match[1]] = value
+            rows.setdefault(match[2] or network, {})[match[1]] = value
     lines = [
         f"| model ({stage}) | all steps: (mean, median) +- std | last step: (mean, median) +- std |",
         "| --- | --- | --- |",

@@ -91,3 +91,156 @@ class AttBLSTM(nn.Module):
         weights = torch.softmax(dec @ self.score(H).transpose(1, 2), dim=-1)  # (B, T, T)
         context = weights @ H  # (B, T, 2h)
         return self.head(torch.tanh(self.combine(torch.cat([context, dec], dim=-1))))  # (B, T, 3)
+
+
+def mlp(n_in: int, hidden: int, n_out: int, norm: bool = True) -> nn.Sequential:
+    """Two linear layers with a SiLU between them, and a LayerNorm on the output (MeshGraphNets)."""
+    layers = [nn.Linear(n_in, hidden), nn.SiLU(), nn.Linear(hidden, n_out)]
+    return nn.Sequential(*layers, nn.LayerNorm(n_out)) if norm else nn.Sequential(*layers)
+
+
+class MessagePassing(nn.Module):
+    """One MeshGraphNets processor block, residual: edges from their two nodes, nodes from
+    the mean of their incoming edges (a mean, so a finer mesh's larger stencil does not scale
+    the update). The edge MLP's first layer is split per input, so the node terms are computed
+    once per node, not once per edge."""
+
+    def __init__(self, hidden: int) -> None:
+        super().__init__()
+        self.edge_self = nn.Linear(hidden, hidden)
+        self.edge_source = nn.Linear(hidden, hidden, bias=False)
+        self.edge_target = nn.Linear(hidden, hidden, bias=False)
+        self.edge_out = nn.Sequential(nn.SiLU(), nn.Linear(hidden, hidden), nn.LayerNorm(hidden))
+        self.node = mlp(2 * hidden, hidden, hidden)
+
+    def forward(
+        self, h: torch.Tensor, e: torch.Tensor, edges: torch.Tensor, degree: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        source, target = edges  # (E,) each
+        e = e + self.edge_out(
+            self.edge_self(e) + self.edge_source(h)[source] + self.edge_target(h)[target]
+        )  # (E, H)
+        incoming = torch.zeros_like(h).index_add_(0, target, e) / degree  # (N, H)
+        return h + self.node(torch.cat([h, incoming], dim=1)), e
+
+
+class SliceAttention(nn.Module):
+    """Transolver's physics attention (Wu et al., 2024) per graph of a batch: nodes are
+    softly assigned to ``slices`` learned clusters, (N, H) -> weights (N, M); each graph's
+    slice tokens (its weighted node means, (B, M, H)) attend to each other; every node gets
+    back its weights' mix of the attended tokens, (N, H). Linear in N, and the clusters are
+    functions of the node state, not of the mesh, so a remeshed breast uses the same weights.
+    """
+
+    def __init__(self, hidden: int, slices: int, heads: int) -> None:
+        super().__init__()
+        self.slices = slices
+        self.assign = nn.Linear(hidden, slices)
+        self.norm = nn.LayerNorm(hidden)
+        self.attention = nn.MultiheadAttention(hidden, heads, batch_first=True)
+
+    def forward(self, h: torch.Tensor, graph: torch.Tensor, n_graphs: int) -> torch.Tensor:
+        w = torch.softmax(self.assign(h), dim=1)  # (N, M)
+        n, hidden = h.shape
+        tokens = h.new_zeros(n_graphs, self.slices * hidden).index_add_(
+            0, graph, (w[:, :, None] * h[:, None, :]).reshape(n, -1)
+        )  # (B, M * H)
+        mass = h.new_zeros(n_graphs, self.slices).index_add_(0, graph, w)  # (B, M)
+        tokens = self.norm(tokens.view(n_graphs, self.slices, hidden) / (mass[..., None] + 1e-6))
+        mixed, _ = self.attention(tokens, tokens, tokens, need_weights=False)  # (B, M, H)
+        return torch.einsum("nm,nmh->nh", w, mixed[graph])  # (N, H)
+
+
+class MeshGraphNet(nn.Module):
+    """Encode-process-decode over a breast's tetrahedral mesh (MeshGraphNets, Pfaff et al.
+    2021) with a global path per block (`SliceAttention`), decoding every node's whole step
+    trajectory in one pass.
+
+    Inputs of a batch of B breasts with N nodes in all (`datamodules.graphs.batch_graphs`):
+    ``nodes`` (N, Fn) whose first three columns are the normalised input coordinates,
+    ``edges`` (2, E), ``graph`` (N,) each node's breast, ``steps`` (B, T, Fs) the per-step
+    inputs (plates), ``node_steps`` (T, N, Fns) per node and step, ``conditions`` (B, C)
+    (stiffness, friction, view). Output: coordinates (T, N, 3), the input coordinates plus a
+    predicted displacement.
+
+    The processor sees each breast's conditions and its last step's inputs (where the plates
+    end); the decoder adds each step's embedding to each node's latent (and the node's
+    heights against the plates at that step), so the whole trajectory costs one processor
+    pass and a (T, N) grid of small MLP rows.
+
+    Parameters
+    ----------
+    n_node, n_step, n_node_step, n_condition : int
+        Fn, Fs, Fns, C.
+    hidden : int
+        Latent size of nodes and edges.
+    layers : int
+        Processor blocks.
+    slices, heads : int
+        Of each block's `SliceAttention`; ``slices=0``: no global path (plain MeshGraphNets).
+    decoder_hidden : int
+        Width of the per-(step, node) decoder.
+    """
+
+    def __init__(
+        self,
+        n_node: int,
+        n_step: int,
+        n_node_step: int,
+        n_condition: int,
+        hidden: int,
+        layers: int,
+        slices: int,
+        heads: int,
+        decoder_hidden: int,
+    ) -> None:
+        super().__init__()
+        self.node_encoder = mlp(n_node + n_condition + n_step, hidden, hidden)
+        self.edge_encoder = mlp(4, hidden, hidden)
+        self.blocks = nn.ModuleList(MessagePassing(hidden) for _ in range(layers))
+        self.mixing = nn.ModuleList(
+            SliceAttention(hidden, slices, heads) for _ in range(layers if slices else 0)
+        )
+        self.step_encoder = mlp(n_step + n_condition, decoder_hidden, decoder_hidden)
+        self.node_head = nn.Linear(hidden, decoder_hidden)
+        self.node_step_head = nn.Linear(n_node_step, decoder_hidden, bias=False)
+        self.decoder = nn.Sequential(
+            nn.SiLU(),
+            nn.Linear(decoder_hidden, decoder_hidden),
+            nn.SiLU(),
+            nn.Linear(decoder_hidden, 3),
+        )
+
+    def forward(
+        self,
+        nodes: torch.Tensor,
+        edges: torch.Tensor,
+        graph: torch.Tensor,
+        steps: torch.Tensor,
+        node_steps: torch.Tensor,
+        conditions: torch.Tensor,
+    ) -> torch.Tensor:
+        x = nodes[:, :3]  # (N, 3)
+        n_graphs, n_steps = steps.shape[:2]
+        relative = x[edges[1]] - x[edges[0]]  # (E, 3)
+        e = self.edge_encoder(torch.cat([relative, relative.norm(dim=1, keepdim=True)], 1))
+        context = torch.cat([conditions, steps[:, -1]], dim=1)[graph]  # (N, C + Fs)
+        h = self.node_encoder(torch.cat([nodes, context], dim=1))  # (N, H)
+        degree = (
+            torch.zeros_like(x[:, :1])
+            .index_add_(0, edges[1], torch.ones_like(edges[1], dtype=x.dtype)[:, None])
+            .clamp_min(1.0)
+        )  # (N, 1)
+        for k, block in enumerate(self.blocks):
+            h, e = block(h, e, edges, degree)
+            if self.mixing:
+                h = h + self.mixing[k](h, graph, n_graphs)
+        z = self.step_encoder(
+            torch.cat([steps, conditions[:, None].expand(-1, n_steps, -1)], dim=-1)
+        )  # (B, T, D)
+        a = (
+            self.node_head(h)[None]  # (1, N, D)
+            + z.transpose(0, 1)[:, graph]  # (T, N, D)
+            + self.node_step_head(node_steps)  # (T, N, D)
+        )
+        return x[None] + self.decoder(a)  # (T, N, 3)

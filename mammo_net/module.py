@@ -1,13 +1,20 @@
-"""The LightningModule of the sequence surrogate: one shared step, errors in millimetres.
+"""The LightningModules of the networks: one shared step each, errors in millimetres.
 
-The network's settings have one home: the signature of `SurrogateModule`. The Hydra config
+`NetworkModule` holds what every network shares (the step it predicts, the input schema it was
+trained on, the ``train/…``, ``val/…``, ``test/…`` metrics, the optimiser and its schedule,
+loading a checkpoint safely); `SurrogateModule` is the paper's Att-BLSTM on per-node step
+sequences, `MeshGraphModule` the mesh-aware graph network on whole breasts
+(`mammo_net.models.MeshGraphNet`, data from `datamodules.graphs`).
+
+A network's settings have one home: the signature of its class. The Hydra config
 ``model/att_blstm`` (conf/model/att_blstm.yaml) holds only the target and ``step:
 ${data.step}``; its other keys are the node ``model/att_blstm_signature``, generated from the
 signature and stored in Hydra's ConfigStore when this module is imported (so whatever composes
 conf/train.yaml imports it first: train.py, the benchmarks, the tests). The keys are listed,
 so ``python train.py model.hidden=128`` needs no ``+``, and ``--cfg job`` shows every setting;
 a default changed here is the config's default, with no YAML copy to disagree (a YAML that
-restated the keys, kept equal by a test, would still be two homes). ``activations=None`` is
+restated the keys, kept equal by a test, would still be two homes). ``model/mesh_gnn`` and
+``model/mesh_gnn_signature`` do the same for `MeshGraphModule`. ``activations=None`` is
 the paper's choice for the step (`mammo_net.models.PAPER_ACTIVATIONS`), and the number of
 input features follows from the step (`datamodules.features.STEP_FEATURES`), so the network
 cannot be built for other features than the data module's.
@@ -18,7 +25,7 @@ from __future__ import annotations
 import functools
 import inspect
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -29,9 +36,21 @@ from numpy.typing import NDArray
 from torch.nn import functional as F
 
 from datamodules.features import STEP_FEATURES, FeatureSchema
+from datamodules.graphs import (
+    CONDITION_FEATURES,
+    NODE_FEATURES,
+    NODE_STEP_INPUTS,
+    STEP_INPUTS,
+    MeshGraphDataModule,
+    graph_inputs,
+)
 from fem.contract.trajectory import reading_file
+from mammo_net.inference import graph_predictor, network_predictor
 from mammo_net.metrics import BreastErrors
-from mammo_net.models import PAPER_ACTIVATIONS, AttBLSTM
+from mammo_net.models import PAPER_ACTIVATIONS, AttBLSTM, MeshGraphNet
+
+#: The batch entries `MeshGraphNet.forward` takes, in order.
+GRAPH_INPUTS = ("nodes", "edges", "graph", "steps", "node_steps", "conditions")
 
 STAGES = ("train", "val", "test")
 
@@ -39,73 +58,36 @@ STAGES = ("train", "val", "test")
 CHECKPOINT_MAGIC = b"PK\x03\x04"
 
 
-class SurrogateModule(L.LightningModule):
-    """Att-BLSTM on per-node step sequences, (B, T, F) -> (B, T, 3), RMSE loss.
+class NetworkModule(L.LightningModule):
+    """What every network shares: its simulation step, the input schema of its training data
+    (``checkpoint["feature_schema"]``), the per-breast RMSE metrics of each stage, Adam with
+    an optional warm-up and cosine schedule, and `from_checkpoint`.
 
-    The checkpoint holds everything to rebuild it (`from_checkpoint`): the hyperparameters,
-    the feature standardisation (buffers ``feature_mean``/``feature_std``) and the feature
-    schema (step, feature names, recorded steps; ``checkpoint["feature_schema"]``), both set
-    from the training data with `set_feature_normalization` before fitting.
-
-    Parameters
-    ----------
-    step : {"unloaded", "compression"}
-        The simulation step it predicts; its features are the input (F = 11 or 22,
-        `datamodules.features.STEP_FEATURES`).
-    hidden, layers, dropout
-        Of `mammo_net.models.AttBLSTM`.
-    activations : (str, str), optional
-        The attention layer's two stages; default the paper's for ``step``
-        (`mammo_net.models.PAPER_ACTIVATIONS`: tanh, relu for the unloaded state; sigmoid,
-        sigmoid for compression).
-    residual : bool
-        Predict the displacement from the node's input coordinates (features 1-3) instead of
-        the coordinates (our addition; the paper's model: ``False``).
-    lr : float
-        Adam learning rate (the paper: 0.03), the peak one with a schedule.
-    lr_schedule : {"constant", "cosine"}
-        ``"cosine"``: linear warm-up over the first 1 % of the optimiser steps, then cosine
-        decay to zero at the last step of ``trainer.max_epochs`` (our addition: the paper's
-        constant 0.03 diverges after about three epochs on the virtual cohort).
+    Subclasses set ``name`` (the predictions file and the table's row), save their
+    hyperparameters (``step``, ``lr``, ``lr_schedule`` among them) and define `adapt` (take
+    what the network needs from the data module before fitting) and `shared_step`.
     """
 
-    def __init__(
-        self,
-        step: str,
-        hidden: int = 64,
-        layers: int = 2,
-        activations: Sequence[str] | None = None,
-        dropout: float = 0.0,
-        residual: bool = True,
-        lr: float = 0.03,
-        lr_schedule: str = "constant",
-    ) -> None:
+    name = "network"
+
+    def __init__(self) -> None:
         super().__init__()
+        self.schema: FeatureSchema | None = None
+        # keys f"{stage}_rmse": a ModuleDict key may not shadow a method (train)
+        self.errors = torch.nn.ModuleDict({f"{stage}_rmse": BreastErrors() for stage in STAGES})
+
+    @staticmethod
+    def check_settings(step: str, lr_schedule: str) -> None:
+        """Refuse an unknown step or learning-rate schedule, naming the setting."""
         if step not in STEP_FEATURES:
             raise ValueError(f"model.step must be one of {sorted(STEP_FEATURES)}, got {step!r}")
         if lr_schedule not in ("constant", "cosine"):
             raise ValueError(
                 f"model.lr_schedule must be 'constant' or 'cosine', not {lr_schedule!r}"
             )
-        if activations is None:
-            activations = PAPER_ACTIVATIONS[step]
-        # saved resolved and as plain types: a weights-only checkpoint keeps its network
-        activations = tuple(str(a) for a in activations)
-        self.save_hyperparameters()
-        self.net = AttBLSTM(self.n_features, hidden, layers, activations, dropout)
-        self.register_buffer("feature_mean", torch.zeros(self.n_features))
-        self.register_buffer("feature_std", torch.ones(self.n_features))
-        self.schema: FeatureSchema | None = None
-        # keys f"{stage}_rmse": a ModuleDict key may not shadow a method (train)
-        self.errors = torch.nn.ModuleDict({f"{stage}_rmse": BreastErrors() for stage in STAGES})
-
-    @property
-    def n_features(self) -> int:
-        """F, the number of input features: the step's."""
-        return len(STEP_FEATURES[self.hparams.step])
 
     def check_data_step(self, step: str) -> None:
-        """Refuse data of another simulation step than the network's: other features.
+        """Refuse data of another simulation step than the network's: other inputs.
 
         Raises
         ------
@@ -114,20 +96,27 @@ class SurrogateModule(L.LightningModule):
         """
         if step != self.hparams.step:
             raise ValueError(
-                f"model.step={self.hparams.step} (a network of {self.n_features} features) does "
-                f"not match data.step={step}: leave model.step at its default ${{data.step}} or "
-                "set both to the same step"
+                f"model.step={self.hparams.step} ({self.name} of the {self.hparams.step} step's "
+                f"inputs) does not match data.step={step}: leave model.step at its default "
+                "${data.step} or set both to the same step"
             )
 
-    def set_feature_normalization(self, mean: NDArray, std: NDArray, schema: FeatureSchema) -> None:
-        """Standardise the features with the training split's statistics, (F,) each, and
-        record the data's feature ``schema`` (refused if of another step, `check_data_step`)."""
-        self.check_data_step(schema.step)
-        self.feature_mean.copy_(torch.as_tensor(mean, dtype=torch.float32))
-        self.feature_std.copy_(torch.as_tensor(std, dtype=torch.float32).clamp_min(1e-6))
-        self.schema = schema
+    def adapt(self, dm: L.LightningDataModule) -> None:
+        """Take what the network needs from the data module ``dm`` (set up) before fitting."""
+        raise NotImplementedError
+
+    def predictor(self, precision: str = "32-true") -> Callable[[Any], NDArray]:
+        """A cached breast's inputs (``Breast.features()``) to its normalised coordinates
+        (N, T, 3) (`mammo_net.inference`)."""
+        raise NotImplementedError
+
+    @property
+    def takes_graphs(self) -> bool:
+        """Whether its inputs are whole-breast graphs (`datamodules.graphs`), not node rows."""
+        return False
 
     def on_save_checkpoint(self, checkpoint: dict) -> None:
+        checkpoint["network"] = self.name
         if self.schema is not None:
             checkpoint["feature_schema"] = self.schema.to_json()
 
@@ -136,12 +125,19 @@ class SurrogateModule(L.LightningModule):
             self.schema = FeatureSchema.from_json(checkpoint["feature_schema"], "checkpoint")
 
     @classmethod
-    def from_checkpoint(cls, path: str | Path) -> SurrogateModule:
-        """The trained network of a checkpoint, on the CPU, in eval mode.
+    def upgrade_hparams(cls, hparams: dict, checkpoint: dict, path: str | Path) -> dict:
+        """The constructor arguments of a checkpoint's stored hyperparameters (older
+        checkpoints' names mapped to today's); as stored by default."""
+        return hparams
+
+    @classmethod
+    def from_checkpoint(cls, path: str | Path) -> NetworkModule:
+        """The trained network of a checkpoint, on the CPU, in eval mode: of the class its
+        ``checkpoint["network"]`` names (`NETWORKS`; checkpoints written before there were
+        two networks are Att-BLSTMs), which must be ``cls`` or a subclass of it
+        (``NetworkModule.from_checkpoint`` loads any).
 
         Reads the file with ``torch.load(weights_only=True)``: no code from it is run.
-        Checkpoints written before the step was a setting (hyperparameter ``n_features``, no
-        ``step``) take the step of their feature schema.
 
         Raises
         ------
@@ -149,8 +145,8 @@ class SurrogateModule(L.LightningModule):
             The file does not exist.
         ValueError
             An empty, truncated or corrupt file, or one that is not a checkpoint of this
-            module (`fem.contract.trajectory.reading_file`); such an old checkpoint without a
-            feature schema, or whose ``n_features`` is not its step's number of features.
+            module (`fem.contract.trajectory.reading_file`), or whose stored settings this
+            module refuses.
         """
         with reading_file(path, "a Lightning checkpoint (.ckpt)", CHECKPOINT_MAGIC) as p:
             checkpoint = torch.load(p, map_location="cpu", weights_only=True)
@@ -161,49 +157,39 @@ class SurrogateModule(L.LightningModule):
                 f"{path}: not a checkpoint of a trained network: fields 'hyper_parameters' and "
                 "'state_dict' expected"
             )
-        hparams = dict(checkpoint["hyper_parameters"])
-        if "n_features" in hparams:
-            n_features = hparams.pop("n_features")
-            if "feature_schema" not in checkpoint:
-                raise ValueError(f"{path}: the checkpoint names no step (no feature schema)")
-            step = FeatureSchema.from_json(checkpoint["feature_schema"], str(path)).step
-            if n_features != len(STEP_FEATURES.get(step, ())):
-                raise ValueError(
-                    f"{path}: n_features={n_features} is not the number of features of the "
-                    f"schema's step {step!r}"
-                )
-            hparams["step"] = step
-        model = cls(**hparams)
-        model.load_state_dict(checkpoint["state_dict"], strict=True)
+        name = checkpoint.get("network", SurrogateModule.name)
+        network = NETWORKS.get(name) if isinstance(name, str) else None
+        if network is None or not issubclass(network, cls):
+            raise ValueError(f"{path}: a checkpoint of the network {name!r}, not a {cls.__name__}")
+        hparams = network.upgrade_hparams(dict(checkpoint["hyper_parameters"]), checkpoint, path)
+        try:
+            model = network(**hparams)
+            model.load_state_dict(checkpoint["state_dict"], strict=True)
+        except (TypeError, RuntimeError) as exc:  # another network's settings or weights
+            raise ValueError(f"{path}: not a checkpoint of {cls.__name__} ({exc})") from exc
         model.on_load_checkpoint(checkpoint)
         return model.eval()
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        out = self.net((x - self.feature_mean) / self.feature_std)  # (B, T, 3)
-        return out + x[..., :3] if self.hparams.residual else out
+    def shared_step(self, batch: Any, stage: str) -> torch.Tensor:
+        raise NotImplementedError
 
-    def shared_step(self, batch: tuple, stage: str) -> torch.Tensor:
-        x, y, breast, scale, node = batch  # (B, T, F), (B, T, 3), (B,), (B,), (B,)
-        prediction = self(x)  # (B, T, 3)
-        loss = torch.sqrt(F.mse_loss(prediction, y))
+    def log_loss(self, loss: torch.Tensor, stage: str, batch_size: int) -> None:
         self.log(
             f"{stage}/loss",
             loss,
             on_step=stage == "train",
             on_epoch=True,
-            batch_size=len(x),
+            batch_size=batch_size,
             sync_dist=True,
         )
-        self.errors[f"{stage}_rmse"].update(prediction, y, breast, scale, node)
-        return loss
 
-    def training_step(self, batch: tuple, batch_idx: int) -> torch.Tensor:
+    def training_step(self, batch: Any, batch_idx: int) -> torch.Tensor:
         return self.shared_step(batch, "train")
 
-    def validation_step(self, batch: tuple, batch_idx: int) -> torch.Tensor:
+    def validation_step(self, batch: Any, batch_idx: int) -> torch.Tensor:
         return self.shared_step(batch, "val")
 
-    def test_step(self, batch: tuple, batch_idx: int) -> torch.Tensor:
+    def test_step(self, batch: Any, batch_idx: int) -> torch.Tensor:
         return self.shared_step(batch, "test")
 
     def _log_errors(self, stage: str) -> None:
@@ -236,6 +222,207 @@ class SurrogateModule(L.LightningModule):
         }
 
 
+class SurrogateModule(NetworkModule):
+    """Att-BLSTM on per-node step sequences, (B, T, F) -> (B, T, 3), RMSE loss.
+
+    The checkpoint holds everything to rebuild it (`from_checkpoint`): the hyperparameters,
+    the feature standardisation (buffers ``feature_mean``/``feature_std``) and the feature
+    schema (step, feature names, recorded steps; ``checkpoint["feature_schema"]``), both set
+    from the training data with `set_feature_normalization` before fitting.
+
+    Parameters
+    ----------
+    step : {"unloaded", "compression"}
+        The simulation step it predicts; its features are the input (F = 11 or 22,
+        `datamodules.features.STEP_FEATURES`).
+    hidden, layers, dropout
+        Of `mammo_net.models.AttBLSTM`.
+    activations : (str, str), optional
+        The attention layer's two stages; default the paper's for ``step``
+        (`mammo_net.models.PAPER_ACTIVATIONS`: tanh, relu for the unloaded state; sigmoid,
+        sigmoid for compression).
+    residual : bool
+        Predict the displacement from the node's input coordinates (features 1-3) instead of
+        the coordinates (our addition; the paper's model: ``False``).
+    lr : float
+        Adam learning rate (the paper: 0.03), the peak one with a schedule.
+    lr_schedule : {"constant", "cosine"}
+        ``"cosine"``: linear warm-up over the first 1 % of the optimiser steps, then cosine
+        decay to zero at the last step of ``trainer.max_epochs`` (our addition: the paper's
+        constant 0.03 diverges after about three epochs on the virtual cohort).
+    """
+
+    name = "att_blstm"
+
+    def __init__(
+        self,
+        step: str,
+        hidden: int = 64,
+        layers: int = 2,
+        activations: Sequence[str] | None = None,
+        dropout: float = 0.0,
+        residual: bool = True,
+        lr: float = 0.03,
+        lr_schedule: str = "constant",
+    ) -> None:
+        super().__init__()
+        self.check_settings(step, lr_schedule)
+        if activations is None:
+            activations = PAPER_ACTIVATIONS[step]
+        # saved resolved and as plain types: a weights-only checkpoint keeps its network
+        activations = tuple(str(a) for a in activations)
+        self.save_hyperparameters()
+        self.net = AttBLSTM(self.n_features, hidden, layers, activations, dropout)
+        self.register_buffer("feature_mean", torch.zeros(self.n_features))
+        self.register_buffer("feature_std", torch.ones(self.n_features))
+
+    @property
+    def n_features(self) -> int:
+        """F, the number of input features: the step's."""
+        return len(STEP_FEATURES[self.hparams.step])
+
+    def adapt(self, dm: L.LightningDataModule) -> None:
+        """The training split's feature statistics and schema (`set_feature_normalization`)."""
+        if isinstance(dm, MeshGraphDataModule):
+            raise ValueError(
+                "model=att_blstm trains on node sequences (data=default), not on whole-breast "
+                "graphs (data=graphs)"
+            )
+        self.set_feature_normalization(*dm.feature_statistics(), dm.schema())
+
+    def predictor(self, precision: str = "32-true") -> Callable[[NDArray], NDArray]:
+        return network_predictor(self, precision=precision)
+
+    def set_feature_normalization(self, mean: NDArray, std: NDArray, schema: FeatureSchema) -> None:
+        """Standardise the features with the training split's statistics, (F,) each, and
+        record the data's feature ``schema`` (refused if of another step, `check_data_step`)."""
+        self.check_data_step(schema.step)
+        self.feature_mean.copy_(torch.as_tensor(mean, dtype=torch.float32))
+        self.feature_std.copy_(torch.as_tensor(std, dtype=torch.float32).clamp_min(1e-6))
+        self.schema = schema
+
+    @classmethod
+    def upgrade_hparams(cls, hparams: dict, checkpoint: dict, path: str | Path) -> dict:
+        """Checkpoints written before the step was a setting (hyperparameter ``n_features``,
+        no ``step``) take the step of their feature schema.
+
+        Raises
+        ------
+        ValueError
+            Such a checkpoint without a feature schema, or whose ``n_features`` is not its
+            step's number of features.
+        """
+        if "n_features" in hparams:
+            n_features = hparams.pop("n_features")
+            if "feature_schema" not in checkpoint:
+                raise ValueError(f"{path}: the checkpoint names no step (no feature schema)")
+            step = FeatureSchema.from_json(checkpoint["feature_schema"], str(path)).step
+            if n_features != len(STEP_FEATURES.get(step, ())):
+                raise ValueError(
+                    f"{path}: n_features={n_features} is not the number of features of the "
+                    f"schema's step {step!r}"
+                )
+            hparams["step"] = step
+        return hparams
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        out = self.net((x - self.feature_mean) / self.feature_std)  # (B, T, 3)
+        return out + x[..., :3] if self.hparams.residual else out
+
+    def shared_step(self, batch: tuple, stage: str) -> torch.Tensor:
+        x, y, breast, scale, node = batch  # (B, T, F), (B, T, 3), (B,), (B,), (B,)
+        prediction = self(x)  # (B, T, 3)
+        loss = torch.sqrt(F.mse_loss(prediction, y))
+        self.log_loss(loss, stage, len(x))
+        self.errors[f"{stage}_rmse"].update(prediction, y, breast, scale, node)
+        return loss
+
+
+class MeshGraphModule(NetworkModule):
+    """The mesh-aware surrogate: `mammo_net.models.MeshGraphNet` on whole breast graphs
+    (`datamodules.graphs`), every node's trajectory of a step in one pass, (T, N, 3); RMSE
+    loss over nodes and steps, in normalised units (equation 1).
+
+    Its inputs are fixed by the step (`datamodules.graphs.graph_inputs`) and need no
+    statistics: coordinates are z-scored per breast, stiffness enters as log-ratios to the
+    paper's, flags as bits. The checkpoint holds the hyperparameters and the data's schema.
+
+    Parameters
+    ----------
+    step : {"unloaded", "compression"}
+        The simulation step it predicts.
+    hidden, layers, slices, heads, decoder_hidden
+        Of `mammo_net.models.MeshGraphNet` (``slices=0``: no global attention path).
+    lr, lr_schedule
+        As `SurrogateModule`'s.
+    """
+
+    name = "mesh_gnn"
+
+    def __init__(
+        self,
+        step: str,
+        hidden: int = 64,
+        layers: int = 8,
+        slices: int = 16,
+        heads: int = 4,
+        decoder_hidden: int = 64,
+        lr: float = 0.001,
+        lr_schedule: str = "cosine",
+    ) -> None:
+        super().__init__()
+        self.check_settings(step, lr_schedule)
+        self.save_hyperparameters()
+        self.net = MeshGraphNet(
+            len(NODE_FEATURES),
+            len(STEP_INPUTS[step]),
+            len(NODE_STEP_INPUTS[step]),
+            len(CONDITION_FEATURES),
+            hidden,
+            layers,
+            slices,
+            heads,
+            decoder_hidden,
+        )
+
+    def adapt(self, dm: L.LightningDataModule) -> None:
+        """Record the data's schema (graph inputs of the model's step, refused otherwise)."""
+        if not isinstance(dm, MeshGraphDataModule):
+            raise ValueError(
+                "model=mesh_gnn trains on whole-breast graphs: set data=graphs "
+                "(conf/data/graphs.yaml), or experiment=mesh_gnn"
+            )
+        schema = dm.schema()
+        self.check_data_step(schema.step)
+        schema.check(self.hparams.step, "data", graph_inputs(self.hparams.step))
+        self.schema = schema
+
+    @property
+    def takes_graphs(self) -> bool:
+        return True
+
+    def predictor(self, precision: str = "32-true") -> Callable[[Any], NDArray]:
+        return graph_predictor(self, precision=precision)
+
+    def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        """Coordinates (T, N, 3) of a `datamodules.graphs.batch_graphs` batch."""
+        return self.net(*(batch[k] for k in GRAPH_INPUTS))
+
+    def shared_step(self, batch: dict[str, torch.Tensor], stage: str) -> torch.Tensor:
+        prediction = self(batch)  # (T, N, 3)
+        y = batch["targets"]  # (T, N, 3)
+        loss = torch.sqrt(F.mse_loss(prediction, y))
+        self.log_loss(loss, stage, int(batch["conditions"].shape[0]))
+        self.errors[f"{stage}_rmse"].update(
+            prediction.transpose(0, 1),
+            y.transpose(0, 1),
+            batch["breast"],
+            batch["scale"],
+            batch["node"],
+        )
+        return loss
+
+
 def signature_defaults(cls: type) -> dict[str, Any]:
     """The arguments of ``cls`` that have a default, with it: the config node of its settings."""
     return {
@@ -245,9 +432,16 @@ def signature_defaults(cls: type) -> dict[str, Any]:
     }
 
 
-ConfigStore.instance().store(
-    group="model", name="att_blstm_signature", node=signature_defaults(SurrogateModule)
-)
+#: The networks by name (``checkpoint["network"]``, the model config's name).
+NETWORKS: dict[str, type[NetworkModule]] = {
+    SurrogateModule.name: SurrogateModule,
+    MeshGraphModule.name: MeshGraphModule,
+}
+
+for _name, _module in NETWORKS.items():
+    ConfigStore.instance().store(
+        group="model", name=f"{_name}_signature", node=signature_defaults(_module)
+    )
 
 
 def warmup_cosine(step: int, total: int, warmup_fraction: float = 0.01) -> float:

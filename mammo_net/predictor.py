@@ -20,12 +20,22 @@ import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import meshio
 import numpy as np
 from numpy.typing import NDArray
 
-from datamodules.features import FeatureSchema, compression_inputs, unloaded_inputs
+from datamodules.features import STEP_FEATURES, FeatureSchema, compression_inputs, unloaded_inputs
+from datamodules.graphs import (
+    PAPER_CONDITIONS,
+    Conditions,
+    MeshGraphDataModule,
+    blank_sample,
+    compression_graph_inputs,
+    graph_inputs,
+    unloaded_graph_inputs,
+)
 from datamodules.trajectories import TrajectoryDataModule
 from fem.breasts.figures import shapes_sections_png
 from fem.breasts.io import write_mesh
@@ -36,7 +46,7 @@ from fem.contract.timeseries import write_time_series
 from fem.contract.trajectory import Trajectory, reading_file
 from fem.engine.boundary import plate_schedule
 from mammo_net import baselines
-from mammo_net.inference import network_predictor, save_predictions
+from mammo_net.inference import save_predictions
 from mammo_net.sequence_trees import from_forest, from_xgboost, sequence_predictor
 
 MODEL_SUFFIXES = (".ckpt", ".json", ".ubj", ".npz")
@@ -44,12 +54,24 @@ MODEL_SUFFIXES = (".ckpt", ".json", ".ubj", ".npz")
 
 @dataclass(frozen=True)
 class Surrogate:
-    """A trained model of one simulation step: ``predict`` maps features (N, T, F) to
-    normalised coordinates (N, T, 3); ``schema`` says which features and steps it takes."""
+    """A trained model of one simulation step: ``predict`` maps features (N, T, F), or with
+    ``graph`` a breast's graph sample (`datamodules.graphs`), to normalised coordinates
+    (N, T, 3); ``schema`` says which inputs and steps it takes."""
 
     name: str
     schema: FeatureSchema
-    predict: Callable[[NDArray], NDArray[np.float32]]
+    predict: Callable[[Any], NDArray[np.float32]]
+    graph: bool = False
+
+    def inputs(self, step: str) -> tuple[str, ...]:
+        """The inputs this code computes for the model's kind and ``step``."""
+        return graph_inputs(step) if self.graph else STEP_FEATURES[step]
+
+    def check(self, step: str, source: str) -> None:
+        """Refuse a model of another step or of other inputs (`FeatureSchema.check`)."""
+        if step not in STEP_FEATURES:
+            raise ValueError(f"{source}: step must be one of {sorted(STEP_FEATURES)}, got {step!r}")
+        self.schema.check(step, source, self.inputs(step))
 
 
 def load_surrogate(
@@ -69,15 +91,13 @@ def load_surrogate(
         not this version's features.
     """
     path = Path(path)
+    graph = False
     if path.suffix == ".ckpt":
-        from mammo_net.module import SurrogateModule
+        from mammo_net.module import NetworkModule
 
-        model = SurrogateModule.from_checkpoint(path)
-        name, schema, predict = (
-            "att_blstm",
-            model.schema,
-            network_predictor(model, precision=precision),
-        )
+        model = NetworkModule.from_checkpoint(path)
+        name, schema, graph = model.name, model.schema, model.takes_graphs
+        predict = model.predictor(precision)
     elif path.suffix in (".json", ".ubj"):
         booster = baselines.load_xgboost(path)
         name, schema = "xgboost", baselines.xgboost_schema(booster, str(path))
@@ -92,11 +112,15 @@ def load_surrogate(
         raise ValueError(f"{path}: a model file ends in one of {MODEL_SUFFIXES}")
     if schema is None:
         raise ValueError(f"{path}: the file has no feature schema; retrain the model")
-    schema.check(step or schema.step, str(path))
-    # one node through the model: compiled kernels (numba, torch) are built here, not inside
-    # the first timed prediction
-    predict(np.zeros((1, schema.n_steps, len(schema.features)), np.float32))
-    return Surrogate(name, schema, predict)
+    surrogate = Surrogate(name, schema, predict, graph)
+    surrogate.check(step or schema.step, str(path))
+    # one node (one tetrahedron) through the model: compiled kernels (numba, torch) are built
+    # here, not inside the first timed prediction
+    if graph:
+        predict(blank_sample(schema.step, schema.n_steps))
+    else:
+        predict(np.zeros((1, schema.n_steps, len(schema.features)), np.float32))
+    return surrogate
 
 
 @dataclass
@@ -130,10 +154,14 @@ def predict_breast(
     unloaded: Surrogate | None,
     compression: Surrogate,
     thicknesses: Sequence[float],
+    conditions: Conditions = PAPER_CONDITIONS,
 ) -> BreastShapes:
     """The unloaded state and the compression of ``traj``'s mesh to each thickness (mm).
 
     ``unloaded=None`` takes the unloaded shape from ``traj.unloaded`` (an FE result) instead.
+    ``conditions`` (tissue stiffness, friction, view and plate angle) are inputs of graph
+    models; the plates are placed in their view. The paper's models know only the paper's
+    cc conditions and refuse others.
 
     Raises
     ------
@@ -142,27 +170,47 @@ def predict_breast(
         wrong step.
     """
     source = traj.source
-    compression.schema.check("compression", f"{source}: compression model {compression.name}")
+    compression.check("compression", f"{source}: compression model {compression.name}")
+    for model in (unloaded, compression):
+        if model is not None and not model.graph and conditions != PAPER_CONDITIONS:
+            raise ValueError(
+                f"{source}: the {model.name} model was trained on the paper's conditions only "
+                f"({PAPER_CONDITIONS}); other stiffness, friction or views need a graph model"
+            )
     if unloaded is None:
         if not len(traj.unloaded):
             raise ValueError(f"{source}: no unloaded-state model and no FE 'unloaded' field")
         steps = traj.unloaded.astype(np.float32)
     else:
-        unloaded.schema.check("unloaded", f"{source}: unloaded-state model {unloaded.name}")
-        features, norm = unloaded_inputs(traj, unloaded.schema.n_steps)  # (T1, N, 11)
-        steps = norm.invert(unloaded.predict(features.transpose(1, 0, 2))).transpose(1, 0, 2)
+        unloaded.check("unloaded", f"{source}: unloaded-state model {unloaded.name}")
+        if unloaded.graph:
+            sample, norm = unloaded_graph_inputs(traj, unloaded.schema.n_steps, conditions)
+            steps = norm.invert(unloaded.predict(sample)).transpose(1, 0, 2)
+        else:
+            features, norm = unloaded_inputs(traj, unloaded.schema.n_steps)  # (T1, N, 11)
+            steps = norm.invert(unloaded.predict(features.transpose(1, 0, 2))).transpose(1, 0, 2)
     shape = steps[-1].astype(np.float64)
     n_steps = compression.schema.n_steps
-    schedules = [plate_schedule(traj, shape, float(t)).recorded(n_steps) for t in thicknesses]
+    schedules = [
+        plate_schedule(traj, shape, float(t), conditions.view, conditions.angle).recorded(n_steps)
+        for t in thicknesses
+    ]
     plates = np.stack([p for p, _ in schedules])  # (K, T2, 2, 3, 3)
     ratio = np.stack([r for _, r in schedules])  # (K, T2)
-    batch, norms = [], []
-    for k in range(len(schedules)):
-        features, norm = compression_inputs(traj, shape, plates[k], ratio[k])  # (T2, N, 22)
-        batch.append(features.transpose(1, 0, 2))
-        norms.append(norm)  # each in its lower plate's frame
-    out = compression.predict(np.concatenate(batch))  # (K N, T2, 3), one call
-    out = out.reshape(len(batch), traj.n_nodes, n_steps, 3)
+    if compression.graph:  # one pass per thickness
+        out, norms = [], []
+        for k in range(len(schedules)):
+            sample, norm = compression_graph_inputs(traj, shape, plates[k], ratio[k], conditions)
+            out.append(compression.predict(sample))  # (N, T2, 3)
+            norms.append(norm)
+    else:
+        batch, norms = [], []
+        for k in range(len(schedules)):
+            features, norm = compression_inputs(traj, shape, plates[k], ratio[k])  # (T2, N, 22)
+            batch.append(features.transpose(1, 0, 2))
+            norms.append(norm)  # each in its lower plate's frame
+        out = compression.predict(np.concatenate(batch))  # (K N, T2, 3), one call
+        out = out.reshape(len(batch), traj.n_nodes, n_steps, 3)
     compressed = np.stack([n.invert(o) for n, o in zip(norms, out, strict=True)])
     compressed = compressed.transpose(0, 2, 1, 3)
     return BreastShapes(
@@ -176,9 +224,10 @@ def predict_breast(
 
 # --- run folders ---------------------------------------------------------------------------
 
-#: The model files of a train.py run folder that `predict_run` predicts with, by model name.
+#: The model files of a train.py run folder that `predict_run` predicts with (the network's
+#: checkpoint is an Att-BLSTM's or a graph model's: its own file says which).
 RUN_MODELS = {
-    "att_blstm": "checkpoints/best.ckpt",
+    "network": "checkpoints/best.ckpt",
     "xgboost": "baselines/xgboost.json",
     "ert": "baselines/ert.npz",
 }
@@ -187,28 +236,28 @@ RUN_MODELS = {
 def predict_run(run: str | Path) -> list[Path]:
     """Write the missing ``predictions/<model>.npz`` of a run folder from its model files
     (`RUN_MODELS`): the validation breasts of the run's split, read from its
-    ``.hydra/config.yaml`` (`datamodules.trajectories.TrajectoryDataModule.from_run`: plain
-    values, nothing instantiated). A run kept as model files (the committed cross-validation
-    folds in ``results/``) thus feeds the evaluation report without retraining."""
+    ``.hydra/config.yaml`` (`datamodules.trajectories.TrajectoryDataModule.from_run`, or the
+    graph data module's for a graph model: plain values, nothing instantiated). A run kept as
+    model files (the committed cross-validation folds in ``results/``) thus feeds the
+    evaluation report without retraining."""
     run = Path(run)
-    todo = {
-        name: run / file
-        for name, file in RUN_MODELS.items()
-        if (run / file).exists() and not (run / "predictions" / f"{name}.npz").exists()
-    }
-    if not todo:
-        return []
-    dm = TrajectoryDataModule.from_run(run)
-    dm.prepare_data()
-    dm.setup()
-    return [
-        save_predictions(
-            run / "predictions" / f"{name}.npz",
-            load_surrogate(file, dm.hparams.step).predict,
-            dm.val,
-        )
-        for name, file in todo.items()
-    ]
+    written, data = [], {}
+    for key, file in RUN_MODELS.items():
+        if not (run / file).exists() or (run / "predictions" / f"{key}.npz").exists():
+            continue
+        surrogate = load_surrogate(run / file)
+        target = run / "predictions" / f"{surrogate.name}.npz"
+        if target.exists():
+            continue
+        kind = MeshGraphDataModule if surrogate.graph else TrajectoryDataModule
+        if kind not in data:
+            data[kind] = kind.from_run(run)
+            data[kind].prepare_data()
+            data[kind].setup()
+        dm = data[kind]
+        surrogate.check(dm.hparams.step, str(run / file))
+        written.append(save_predictions(target, surrogate.predict, dm.val))
+    return written
 
 
 # --- files ---------------------------------------------------------------------------------

@@ -84,11 +84,27 @@ def tiny_trajectory(laterality: str = "R", **metadata) -> Trajectory:
     )
 
 
+#: The conditions the FE records in ``metadata["simulation"]`` (what graph models read).
+SIMULATION_METADATA = {
+    "materials": {
+        "fat": {"young": 1100.0, "poisson": 0.495},
+        "gland": {"young": 2500.0, "poisson": 0.495},
+        "muscle": {"young": 6000.0, "poisson": 0.495},
+        "skin": {"young": 1000.0, "poisson": 0.495, "membrane": 2.0},
+    },
+    "friction": 0.25,
+    "view": "cc",
+    "angle": 45.0,
+}
+
+
 @pytest.fixture
 def trajectory_folder(tmp_path):
     """12 patients (3 of site A), both breasts each: tiny simulated trajectories."""
     for p in range(12):
         for lat in "LR":
             site = "A" if p % 4 == 0 else "B"
-            tiny_trajectory(lat, patient=p, site=site).save(tmp_path / f"P{p:04d}_{lat}.npz")
+            tiny_trajectory(lat, patient=p, site=site, simulation=SIMULATION_METADATA).save(
+                tmp_path / f"P{p:04d}_{lat}.npz"
+            )
     return tmp_path

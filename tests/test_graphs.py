@@ -1,0 +1,165 @@
+"""The mesh-aware surrogate: graph samples, batching, the network's invariances, training,
+checkpoints and predictions on a remeshed breast."""
+
+import dataclasses
+
+import lightning as L
+import numpy as np
+import pytest
+import torch
+
+from datamodules.graphs import (
+    CONDITION_FEATURES,
+    NODE_FEATURES,
+    PAPER_CONDITIONS,
+    STEP_INPUTS,
+    Conditions,
+    MeshGraphDataModule,
+    batch_graphs,
+    graph_sample,
+    mesh_edges,
+)
+from fem.breasts.mesh import refine
+from fem.contract.trajectory import Trajectory
+from mammo_net.module import MeshGraphModule, NetworkModule, SurrogateModule
+from mammo_net.predictor import load_surrogate, predict_breast
+from tests.conftest import SIMULATION_METADATA, tiny_trajectory
+
+
+def _traj(lat: str = "R") -> Trajectory:
+    return tiny_trajectory(lat, patient=1, site="A", simulation=SIMULATION_METADATA)
+
+
+def test_mesh_edges_are_each_edge_both_ways():
+    edges = mesh_edges(np.array([[0, 1, 2, 3], [0, 2, 1, 4]]))
+    pairs = set(map(tuple, edges.T))
+    assert len(pairs) == edges.shape[1] == 2 * 9  # 6 + 6 edges, 3 shared
+    assert all((b, a) in pairs for a, b in pairs)
+    assert (1, 4) in pairs and (3, 4) not in pairs
+
+
+@pytest.mark.parametrize("step", ["unloaded", "compression"])
+def test_graph_sample_shapes_and_targets(step):
+    traj = _traj()
+    sample, norm = graph_sample(traj, step)
+    positions = traj.unloaded if step == "unloaded" else traj.compressed
+    t, n = positions.shape[:2]
+    assert sample["nodes"].shape == (n, len(NODE_FEATURES))
+    assert sample["steps"].shape == (t, len(STEP_INPUTS[step]))
+    assert sample["conditions"].shape == (len(CONDITION_FEATURES),)
+    np.testing.assert_allclose(norm.invert(sample["targets"]), positions, atol=1e-5)
+    # the input coordinates are the step's input geometry, normalised like the targets
+    reference = traj.points if step == "unloaded" else traj.reference_shape
+    np.testing.assert_allclose(norm.invert(sample["nodes"][:, :3]), reference, atol=1e-5)
+    # the paper's conditions: stiffness at the reference (log-ratio 0), friction 0.25, cc
+    np.testing.assert_array_equal(sample["conditions"], [0, 0, 0, 0, 0.25, 0, 0])
+
+
+def test_conditions_read_and_refused():
+    traj = _traj()
+    assert Conditions.of_metadata(traj.metadata) == PAPER_CONDITIONS
+    soft = Conditions({**PAPER_CONDITIONS.young, "fat": 550.0}, 0.25, "mlo", 45.0)
+    v = soft.vector()
+    assert v[0] == pytest.approx(np.log(0.5)) and v[5] == 1.0 and v[6] == pytest.approx(np.pi / 4)
+    with pytest.raises(ValueError, match="conditions.young.gland must be a positive"):
+        Conditions({**PAPER_CONDITIONS.young, "gland": -1.0}, 0.25, "cc")
+    with pytest.raises(ValueError, match="conditions.view must be"):
+        Conditions(PAPER_CONDITIONS.young, 0.25, "lateral")
+    with pytest.raises(ValueError, match=r"no modulus for \['skin'\]"):
+        Conditions({"fat": 1.0, "gland": 1.0, "muscle": 1.0}, 0.25, "cc")
+    with pytest.raises(ValueError, match="P9.npz: metadata field 'simulation'"):
+        Conditions.of_metadata({}, "P9.npz")
+
+
+def test_batch_offsets_edges_and_refuses_other_step_counts():
+    a, _ = graph_sample(_traj("L"), "compression")
+    b, _ = graph_sample(_traj("R"), "compression")
+    batch = batch_graphs([a, b])
+    n = len(a["nodes"])
+    assert batch["edges"][:, a["edges"].shape[1] :].min() == n
+    assert batch["graph"].tolist() == [0] * n + [1] * len(b["nodes"])
+    assert batch["targets"].shape == (3, 2 * n, 3)
+    short = {**b, "steps": b["steps"][:2], "node_steps": b["node_steps"][:2]}
+    with pytest.raises(ValueError, match="share the step count"):
+        batch_graphs([a, short])
+
+
+def _model(step: str = "compression") -> MeshGraphModule:
+    torch.manual_seed(0)
+    return MeshGraphModule(step, hidden=16, layers=2, slices=4, heads=2, decoder_hidden=16)
+
+
+def test_network_is_equivariant_to_node_order_and_batching():
+    """Renumbering the nodes renumbers the prediction; a breast predicts the same alone and
+    beside another (no leak between the graphs of a batch)."""
+    model = _model().eval()
+    a, _ = graph_sample(_traj("L"), "compression")
+    b, _ = graph_sample(_traj("R"), "compression")
+    perm = np.array([3, 0, 4, 2, 1])
+    inverse = np.argsort(perm)
+    permuted = {
+        **a,
+        "nodes": a["nodes"][perm],
+        "edges": inverse[a["edges"]],
+        "node_steps": a["node_steps"][:, perm],
+    }
+    with torch.no_grad():
+        alone = model(batch_graphs([a]))
+        renumbered = model(batch_graphs([permuted]))
+        together = model(batch_graphs([a, b]))
+    torch.testing.assert_close(renumbered, alone[:, perm], atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(together[:, :5], alone, atol=1e-5, rtol=1e-5)
+
+
+def test_model_trains_on_a_tiny_cohort_and_improves(trajectory_folder, tmp_path):
+    dm = MeshGraphDataModule(str(trajectory_folder), "compression", batch_size=4)
+    dm.prepare_data()
+    dm.setup()
+    model = _model()
+    model.hparams.lr = 0.01
+    model.adapt(dm)
+    batch = next(iter(dm.train_dataloader()))
+
+    def loss() -> float:
+        with torch.no_grad():
+            return torch.sqrt(((model(batch) - batch["targets"]) ** 2).mean()).item()
+
+    before = loss()
+    trainer = L.Trainer(
+        max_epochs=15, logger=False, enable_checkpointing=False, enable_progress_bar=False
+    )
+    trainer.fit(model, dm)
+    assert loss() < 0.5 * before
+    assert trainer.callback_metrics["val/rmse_last_step_mean_mm"] > 0
+    # the checkpoint rebuilds the network and names it; the Att-BLSTM's loader refuses it
+    path = tmp_path / "gnn.ckpt"
+    trainer.save_checkpoint(path, weights_only=True)
+    again = NetworkModule.from_checkpoint(path)
+    assert isinstance(again, MeshGraphModule) and again.schema == dm.schema()
+    with torch.no_grad():
+        torch.testing.assert_close(again(batch), model.eval()(batch))
+    with pytest.raises(ValueError, match="a checkpoint of the network 'mesh_gnn', not a Surr"):
+        SurrogateModule.from_checkpoint(path)
+    # predictions of a remeshed breast (8x the elements) and of other conditions run
+    surrogate = load_surrogate(path, "compression")
+    assert surrogate.graph and surrogate.name == "mesh_gnn"
+    fine, _ = refine(_traj())
+    fine = dataclasses.replace(fine, unloaded=fine.points[None])  # the unloaded shape given
+    thickness = 0.5  # mm; the skin spans 1 mm along z
+    shapes = predict_breast(fine, None, surrogate, [thickness])
+    assert shapes.compressed.shape == (1, 3, fine.n_nodes, 3)
+    assert np.isfinite(shapes.compressed).all()
+    soft = Conditions({**PAPER_CONDITIONS.young, "fat": 500.0}, 0.1, "cc")
+    other = predict_breast(fine, None, surrogate, [thickness], soft)
+    assert not np.allclose(other.compressed, shapes.compressed)
+
+
+def test_models_refuse_the_other_data(trajectory_folder):
+    graphs = MeshGraphDataModule(str(trajectory_folder), "compression")
+    with pytest.raises(ValueError, match="model=att_blstm trains on node sequences"):
+        SurrogateModule("compression").adapt(graphs)
+    from datamodules.trajectories import TrajectoryDataModule
+
+    rows = TrajectoryDataModule(str(trajectory_folder), "compression")
+    with pytest.raises(ValueError, match="model=mesh_gnn trains on whole-breast graphs"):
+        _model().adapt(rows)
