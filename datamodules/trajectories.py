@@ -194,7 +194,21 @@ class TrajectoryDataModule(L.LightningDataModule):
             raise ValueError(
                 f"data.fold={fold} selects a k-fold validation fold; the one-fold split has none"
             )
-        self.save_hyperparameters()
+        # the resolved values, stated: a subclass's own arguments are not collected
+        self.save_hyperparameters(
+            {
+                "data_dir": data_dir,
+                "step": step,
+                "split": split,
+                "fold": fold,
+                "n_folds": n_folds,
+                "val_fraction": val_fraction,
+                "seed": seed,
+                "batch_size": batch_size,
+                "num_workers": num_workers,
+                "cache_dir": cache_dir,
+            }
+        )
         self.data_dir = Path(data_dir)
         self.cache = Path(cache_dir) if cache_dir else self.data_dir / "cache"
         self.feature_names = STEP_FEATURES[step]

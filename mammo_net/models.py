@@ -219,9 +219,12 @@ class MeshGraphNet(nn.Module):
         steps: torch.Tensor,
         node_steps: torch.Tensor,
         conditions: torch.Tensor,
+        decoded: torch.Tensor | None = None,
     ) -> torch.Tensor:
+        """Coordinates (T, N, 3), or (T', N, 3) at the step indices ``decoded`` (T',) only
+        (training on a sample of the steps: the processor pass is the same)."""
         x = nodes[:, :3]  # (N, 3)
-        n_graphs, n_steps = steps.shape[:2]
+        n_graphs = steps.shape[0]
         relative = x[edges[1]] - x[edges[0]]  # (E, 3)
         e = self.edge_encoder(torch.cat([relative, relative.norm(dim=1, keepdim=True)], 1))
         context = torch.cat([conditions, steps[:, -1]], dim=1)[graph]  # (N, C + Fs)
@@ -235,8 +238,10 @@ class MeshGraphNet(nn.Module):
             h, e = block(h, e, edges, degree)
             if self.mixing:
                 h = h + self.mixing[k](h, graph, n_graphs)
+        if decoded is not None:
+            steps, node_steps = steps[:, decoded], node_steps[decoded]  # T' steps
         z = self.step_encoder(
-            torch.cat([steps, conditions[:, None].expand(-1, n_steps, -1)], dim=-1)
+            torch.cat([steps, conditions[:, None].expand(-1, steps.shape[1], -1)], dim=-1)
         )  # (B, T, D)
         a = (
             self.node_head(h)[None]  # (1, N, D)

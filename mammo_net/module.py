@@ -353,6 +353,11 @@ class MeshGraphModule(NetworkModule):
         The simulation step it predicts.
     hidden, layers, slices, heads, decoder_hidden
         Of `mammo_net.models.MeshGraphNet` (``slices=0``: no global attention path).
+    train_steps : int, optional
+        Decode only this many of a batch's recorded steps in a training step: a fresh random
+        sample each time, always with the last step (the processor pass is the same for all
+        steps, and the decoder's (T, N) grid is most of a step's cost); ``train/…`` errors are
+        then over the sampled steps. ``None``: every step. Validation and tests decode all.
     lr, lr_schedule
         As `SurrogateModule`'s.
     """
@@ -367,11 +372,14 @@ class MeshGraphModule(NetworkModule):
         slices: int = 16,
         heads: int = 4,
         decoder_hidden: int = 64,
+        train_steps: int | None = 16,
         lr: float = 0.001,
         lr_schedule: str = "cosine",
     ) -> None:
         super().__init__()
         self.check_settings(step, lr_schedule)
+        if train_steps is not None and train_steps < 1:
+            raise ValueError(f"model.train_steps must be at least 1 (or null), got {train_steps}")
         self.save_hyperparameters()
         self.net = MeshGraphNet(
             len(NODE_FEATURES),
@@ -404,13 +412,28 @@ class MeshGraphModule(NetworkModule):
     def predictor(self, precision: str = "32-true") -> Callable[[Any], NDArray]:
         return graph_predictor(self, precision=precision)
 
-    def forward(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
-        """Coordinates (T, N, 3) of a `datamodules.graphs.batch_graphs` batch."""
-        return self.net(*(batch[k] for k in GRAPH_INPUTS))
+    def forward(
+        self, batch: dict[str, torch.Tensor], decoded: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """Coordinates (T, N, 3) of a `datamodules.graphs.batch_graphs` batch (at the step
+        indices ``decoded`` only, when given)."""
+        return self.net(*(batch[k] for k in GRAPH_INPUTS), decoded=decoded)
+
+    def sampled_steps(self, n_steps: int) -> torch.Tensor | None:
+        """The step indices a training step decodes (`train_steps`), sorted, the last
+        included; ``None`` for all."""
+        k = self.hparams.train_steps
+        if k is None or k >= n_steps:
+            return None
+        others = torch.randperm(n_steps - 1, device=self.device)[: k - 1]
+        return torch.cat([others.sort().values, others.new_tensor([n_steps - 1])])
 
     def shared_step(self, batch: dict[str, torch.Tensor], stage: str) -> torch.Tensor:
-        prediction = self(batch)  # (T, N, 3)
         y = batch["targets"]  # (T, N, 3)
+        decoded = self.sampled_steps(len(y)) if stage == "train" else None
+        if decoded is not None:
+            y = y[decoded]
+        prediction = self(batch, decoded)  # (T, N, 3)
         loss = torch.sqrt(F.mse_loss(prediction, y))
         self.log_loss(loss, stage, int(batch["conditions"].shape[0]))
         self.errors[f"{stage}_rmse"].update(

@@ -304,3 +304,53 @@ def test_cross_validation_sweeps_feed_the_report(trajectory_folder, tmp_path):
     # 24 breasts, 10 folds: folds 0 and 1 validate 2 patients (4 breasts) each -> 8 breasts.
     for model in ("att_blstm", "xgboost"):
         assert summary["10_fold_CV_compression"][model]["n_breasts"] == 8
+
+
+@pytest.mark.parametrize("step", ["compression", "unloaded"])
+@pytest.mark.parametrize("cv", [None, "cv_mesh_gnn"])
+def test_graph_model_configs_instantiate(step, cv, tmp_path):
+    experiments = ",".join(e for e in (f"paper_{step}", "mesh_gnn", cv) if e)
+    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
+        cfg = compose(
+            "train",
+            overrides=[f"experiment=[{experiments}]", f"run_dir={tmp_path}", "data.fold=4"],
+            return_hydra_config=True,
+        )
+    if cv:
+        assert cfg.hydra.sweep.dir == f"results/cv/mesh_gnn/{step}"
+        assert cfg.hydra.sweeper.params["data.fold"].startswith("range(0, 10)")
+    dm, model = instantiate(cfg.data), instantiate(cfg.model)
+    assert type(dm).__name__ == "MeshGraphDataModule" and dm.hparams.step == step
+    assert model.name == "mesh_gnn" and model.hparams.step == step
+    settings = {k: v for k, v in cfg.model.items() if k not in ("_target_", "step")}
+    assert set(settings) == set(signature_defaults(type(model)))
+    callbacks = [instantiate(c) for c in cfg.callbacks.values() if c and "_target_" in c]
+    assert [type(c).__name__ for c in callbacks] == ["ModelCheckpoint"]
+
+
+def test_train_the_graph_model(trajectory_folder, tmp_path):
+    """``python train.py experiment=mesh_gnn``: the graph model's table row and the validation
+    breasts' predictions in millimetres, as the Att-BLSTM's."""
+    cfg = _cfg(
+        "experiment=mesh_gnn",
+        f"run_dir={tmp_path}",
+        f"data.data_dir={trajectory_folder}",
+        "data.val_fraction=0.25",
+        "model.hidden=8",
+        "model.layers=1",
+        "model.slices=2",
+        "model.heads=1",
+        "model.decoder_hidden=8",
+        "trainer.max_epochs=2",
+        "~logger",
+        "+trainer.enable_progress_bar=false",
+        "report=false",
+    )
+    assert train.train(cfg) > 0
+    table = (tmp_path / "results.md").read_text()
+    assert "| mesh_gnn | (" in table and "mesh_gnn (2 epochs)" in table
+    predictions = load_predictions(tmp_path / "predictions" / "mesh_gnn.npz")
+    assert len(predictions) == 6
+    for name, p in predictions.items():
+        truth = Trajectory.load(trajectory_folder / f"{name}.npz").compressed.transpose(1, 0, 2)
+        assert p.shape == truth.shape and np.isfinite(p).all()
