@@ -34,6 +34,7 @@ from datamodules.trajectories import (
     Breast,
     TrajectoryDataModule,
     cache_is_current,
+    node_offsets,
     source_stamp,
 )
 from fem.contract.atomic import atomic_path
@@ -399,9 +400,7 @@ class BreastGraphs(Dataset):
 
     def __init__(self, breasts: list[GraphBreast]) -> None:
         self.breasts = breasts
-        metas = [json.loads(b.stem.with_suffix(".json").read_text()) for b in breasts]
-        self.offsets = np.concatenate([[0], np.cumsum([m["n_nodes"] for m in metas])])
-        self.scales = np.array([m["scale"] for m in metas], np.float32)
+        self.offsets, self.scales = node_offsets(breasts)
         self._samples: dict[int, dict[str, NDArray]] = {}
 
     def __len__(self) -> int:

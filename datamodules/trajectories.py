@@ -111,6 +111,14 @@ def cache_breast(source: Path, stem: Path, step: str) -> None:
         np.save(tmp, np.ascontiguousarray(targets.transpose(1, 0, 2)))
 
 
+def node_offsets(breasts: list[Breast]) -> tuple[NDArray[np.int64], NDArray[np.float32]]:
+    """Where each breast's nodes start in a dataset of all their nodes, (B + 1,) with the
+    total last, and each breast's normalisation scale (mm per unit), (B,), from the caches."""
+    metas = [json.loads(b.stem.with_suffix(".json").read_text()) for b in breasts]
+    offsets = np.concatenate([[0], np.cumsum([m["n_nodes"] for m in metas])]).astype(np.int64)
+    return offsets, np.array([m["scale"] for m in metas], np.float32)
+
+
 class NodeSequences(Dataset):
     """One item per (breast, node): features (T, F) and targets (T, 3) float32, the breast's
     index in ``breasts``, its normalisation scale (mm per normalised unit, for errors in mm)
@@ -119,9 +127,7 @@ class NodeSequences(Dataset):
 
     def __init__(self, breasts: list[Breast]) -> None:
         self.breasts = breasts
-        metas = [json.loads(b.stem.with_suffix(".json").read_text()) for b in breasts]
-        self.offsets = np.concatenate([[0], np.cumsum([m["n_nodes"] for m in metas])])
-        self.scales = np.array([m["scale"] for m in metas], np.float32)
+        self.offsets, self.scales = node_offsets(breasts)
         self._open: dict[int, tuple[NDArray, NDArray]] = {}
 
     def __len__(self) -> int:
