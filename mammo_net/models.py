@@ -243,9 +243,9 @@ class MeshGraphNet(nn.Module):
         z = self.step_encoder(
             torch.cat([steps, conditions[:, None].expand(-1, steps.shape[1], -1)], dim=-1)
         )  # (B, T, D)
-        a = (
-            self.node_head(h)[None]  # (1, N, D)
-            + z.transpose(0, 1)[:, graph]  # (T, N, D)
-            + self.node_step_head(node_steps)  # (T, N, D)
-        )
+        # (T, 1, D) broadcast for one breast (a prediction), else each node's breast's
+        z = z.transpose(0, 1) if n_graphs == 1 else z.transpose(0, 1)[:, graph]
+        a = self.node_head(h)[None] + z  # (T, N, D)
+        if node_steps.shape[-1]:  # the unloaded state has no per-node step inputs
+            a = a + self.node_step_head(node_steps)  # (T, N, D)
         return x[None] + self.decoder(a)  # (T, N, 3)
