@@ -241,11 +241,17 @@ def predict_run(run: str | Path) -> list[Path]:
     model files (the committed cross-validation folds in ``results/``) thus feeds the
     evaluation report without retraining."""
     run = Path(run)
+    todo = [
+        run / file
+        for key, file in RUN_MODELS.items()
+        if (run / file).exists() and not (run / "predictions" / f"{key}.npz").exists()
+    ]
+    if not todo:
+        return []
+    TrajectoryDataModule.from_run(run).sources()  # settings and data checked before any model
     written, data = [], {}
-    for key, file in RUN_MODELS.items():
-        if not (run / file).exists() or (run / "predictions" / f"{key}.npz").exists():
-            continue
-        surrogate = load_surrogate(run / file)
+    for file in todo:
+        surrogate = load_surrogate(file)
         target = run / "predictions" / f"{surrogate.name}.npz"
         if target.exists():
             continue
@@ -255,7 +261,7 @@ def predict_run(run: str | Path) -> list[Path]:
             data[kind].prepare_data()
             data[kind].setup()
         dm = data[kind]
-        surrogate.check(dm.hparams.step, str(run / file))
+        surrogate.check(dm.hparams.step, str(file))
         written.append(save_predictions(target, surrogate.predict, dm.val))
     return written
 

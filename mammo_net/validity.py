@@ -4,7 +4,7 @@ A surrogate predicts node positions one node at a time, so nothing stops it from
 tetrahedron inside out, losing volume that nearly incompressible tissue cannot lose, or
 pushing skin through a compression plate. `ValidityProjection` (the ``projection`` settings
 of ``conf/predict.yaml``) first moves every predicted shape onto a valid one
-(`fem.contract.projection.project_valid`); `check_shapes` then measures all three on every
+(`fem.contract.projection.project_steps`); `check_shapes` then measures all three on every
 shape that ``predict.py`` writes, and `PhysicalChecks` (the ``checks`` settings) decides
 whether a violation is a warning or refuses the output.
 """
@@ -17,7 +17,7 @@ from dataclasses import asdict, dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from fem.contract.projection import ProjectionFailed, plate_depth, project_valid
+from fem.contract.projection import StepProjections, constraints, plate_depth, project_steps
 from fem.contract.quality import signed_volume
 from fem.contract.trajectory import NodeFlag, Trajectory
 from fem.engine.boundary import chest_wall
@@ -191,7 +191,7 @@ class PhysicalChecks:
 @dataclass(frozen=True)
 class ValidityProjection:
     """Predicted shapes moved as little as they need to be physically valid, every recorded
-    step (`fem.contract.projection.project_valid`): each element's volume at least
+    step (`fem.contract.projection.project_steps`): each element's volume at least
     ``min_volume_ratio`` of its reference, no skin node inside a plate covering it, the whole
     volume within ``volume_tolerance`` of its reference, and the chest wall held as the FE
     holds it (the sliding wall: muscle nodes still, interface nodes along the wall; nothing
@@ -220,60 +220,53 @@ class ValidityProjection:
         predicted, with a warning: the checks then report them) and the settings."""
         skin = traj.flagged(NodeFlag.SKIN)
         tolerance = (-self.volume_tolerance, self.volume_tolerance)
-        failed: list[str] = []
 
-        def held_from(reference: NDArray) -> tuple[NDArray, NDArray] | None:
+        def valid_shapes(reference: NDArray, steps: NDArray, plates=None) -> StepProjections:
             try:  # the wall as the step starting from ``reference`` holds it
                 wall = chest_wall(traj, reference)
+                held = wall.nodes, wall.directions
             except ValueError:  # no chest wall in this mesh: nothing held
-                return None
-            return wall.nodes, wall.directions
+                held = None
+            c = constraints(
+                traj.cells,
+                reference,
+                None if plates is None else skin,
+                self.min_volume_ratio,
+                tolerance,
+                held,
+            )
+            return project_steps(c, steps.reshape(-1, traj.n_nodes, 3), plates)
 
-        def valid(x: NDArray, reference: NDArray, held, name: str, plates=None) -> NDArray:
-            try:
-                p = project_valid(
-                    traj.cells,
-                    reference,
-                    x.astype(np.float64),
-                    None if plates is None else skin,
-                    plates,
-                    self.min_volume_ratio,
-                    tolerance,
-                    held,
-                )
-            except ProjectionFailed as exc:
-                failed.append(f"{name}: {exc}")
-                return x
-            moved.append((p.sweeps > 0, p.moved_rms_mm, p.moved_max_mm))
-            return p.points
-
-        moved: list[tuple[bool, float, float]] = []
-        held = held_from(traj.points)
-        unloaded = np.array(
-            [
-                valid(x, traj.points, held, f"unloaded step {t + 1}")
-                for t, x in enumerate(shapes.unloaded)
-            ],
-            np.float32,
-        ).reshape(shapes.unloaded.shape)
-        start = unloaded[-1].astype(np.float64) if len(unloaded) else traj.points
-        held = held_from(start)
-        compressed = np.empty_like(shapes.compressed)
-        for k, (steps, plates) in enumerate(zip(shapes.compressed, shapes.plates, strict=True)):
-            for t, (x, frames) in enumerate(zip(steps, plates, strict=True)):
-                name = f"compression {shapes.thickness[k]:g} mm step {t + 1}"
-                compressed[k, t] = valid(x, start, held, name, frames)
+        unloaded = valid_shapes(traj.points, shapes.unloaded)
+        start = unloaded.points[-1] if len(shapes.unloaded) else traj.points
+        k, t = shapes.compressed.shape[:2]
+        compressed = valid_shapes(start, shapes.compressed, shapes.plates.reshape(k * t, 2, 3, 3))
+        failed = [f"unloaded step {i + 1}: {why}" for i, why in unloaded.failed.items()]
+        failed += [
+            f"compression {shapes.thickness[i // t]:g} mm step {i % t + 1}: {why}"
+            for i, why in compressed.failed.items()
+        ]
         if failed:
             warnings.warn(
                 f"{traj.source}: no valid shape found for {len(failed)} step(s), written as "
                 f"predicted; first: {failed[0]}",
                 stacklevel=2,
             )
+        projected = {}
+        for name, p, predicted in (
+            ("unloaded", unloaded, shapes.unloaded),
+            ("compressed", compressed, shapes.compressed),
+        ):
+            points = p.points.copy()
+            for i in p.failed:  # kept as predicted
+                points[i] = predicted.reshape(-1, traj.n_nodes, 3)[i]
+            projected[name] = points.reshape(predicted.shape).astype(np.float32)
+        moved = [unloaded, compressed]
         record = {
-            "steps_moved": int(sum(m[0] for m in moved)),
-            "moved_rms_mm": max((m[1] for m in moved), default=0.0),
-            "moved_max_mm": max((m[2] for m in moved), default=0.0),
+            "steps_moved": int(sum((p.sweeps > 0).sum() for p in moved)),
+            "moved_rms_mm": float(max(p.moved_rms_mm.max(initial=0.0) for p in moved)),
+            "moved_max_mm": float(max(p.moved_max_mm.max(initial=0.0) for p in moved)),
             "failed_steps": failed,
             "settings": asdict(self),
         }
-        return replace(shapes, unloaded=unloaded, compressed=compressed), record
+        return replace(shapes, **projected), record

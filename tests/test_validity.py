@@ -4,11 +4,11 @@ import numpy as np
 import pytest
 import skfem
 
+from fem.contract import projection
 from fem.contract.plates import cc_plates, rotate_plates
-from fem.contract.projection import ProjectionFailed, project_valid
+from fem.contract.projection import ProjectionFailed, project
 from fem.contract.quality import signed_volume
 from fem.contract.trajectory import NodeFlag, Tissue, Trajectory
-from mammo_net import validity
 from mammo_net.predictor import BreastShapes
 from mammo_net.validity import (
     PhysicalChecks,
@@ -134,12 +134,12 @@ def test_the_projection_makes_a_deliberately_bad_prediction_valid(monkeypatch):
     assert record["steps_moved"] == 1 and 0 < record["moved_rms_mm"] < 1.0
 
     # a step without a valid shape stays as predicted, with a warning and a record
-    def fail_compression(*args):
-        if args[4] is not None:  # plates: a compression step
+    def fail_compression(c, points, plates=None):
+        if plates is not None:  # a compression step
             raise ProjectionFailed("after 2000 sweeps: ...")
-        return project_valid(*args)
+        return project(c, points, plates)
 
-    monkeypatch.setattr(validity, "project_valid", fail_compression)
+    monkeypatch.setattr(projection, "project", fail_compression)
     with pytest.warns(UserWarning, match=r"block.vtu: no valid shape found for 1 step\(s\)"):
         kept, record = ValidityProjection()(traj, shapes)
     np.testing.assert_array_equal(kept.compressed, shapes.compressed)

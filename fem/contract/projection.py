@@ -96,6 +96,172 @@ def plate_depth(points: NDArray, skin: NDArray, plates: NDArray) -> NDArray[np.f
     )
 
 
+@dataclass(frozen=True)
+class Constraints:
+    """What a valid shape of a mesh satisfies, computed once from its reference shape
+    (`constraints`) for all the shapes projected against it (`project`, `project_steps`).
+
+    Attributes
+    ----------
+    cells : (E, 4) int64
+    reference : (N, 3) float64
+        Stress-free shape, mm.
+    volume : (E,) float64
+        Element volumes of ``reference``, mm^3.
+    target : (E,) float64
+        Smallest accepted element volumes, mm^3.
+    size : (E,) float64
+        Edge of a regular tetrahedron of each reference volume, mm: the longest step an
+        element asks of a vertex.
+    free : (N, 3, 3) float64
+        Per node, the projector onto the directions it may move in (`free_projectors`).
+    skin : (S,) int64 or None
+        Nodes held outside the plates.
+    volume_change : (float, float) or None
+        Accepted range of the whole volume's change.
+    tolerance_mm : float
+        Plate penetration accepted, mm.
+    max_sweeps : int
+        Jacobi sweeps before giving up.
+    min_volume_ratio : float
+        ``target / volume``.
+    """
+
+    cells: NDArray[np.int64]
+    reference: NDArray[np.float64]
+    volume: NDArray[np.float64]
+    target: NDArray[np.float64]
+    size: NDArray[np.float64]
+    free: NDArray[np.float64]
+    skin: NDArray[np.int64] | None
+    volume_change: tuple[float, float] | None
+    tolerance_mm: float
+    max_sweeps: int
+    min_volume_ratio: float
+
+    def held(self, points: NDArray) -> NDArray[np.float64]:
+        """``points`` (..., N, 3) with their displacement along the held directions removed."""
+        return self.reference + np.einsum("nij,...nj->...ni", self.free, points - self.reference)
+
+    def measure(
+        self, x: NDArray, plates: NDArray | None
+    ) -> tuple[NDArray, float, NDArray | None, float]:
+        """Element volumes (E,), whole-volume change, plate contact (`_plate_contact`) and the
+        deepest skin node inside a plate (mm) of the shape ``x`` (N, 3)."""
+        volume = signed_volume(x, self.cells)
+        total = volume.sum() / self.volume.sum() - 1.0
+        walls, deep = _plate_contact(x, self.skin, plates) if plates is not None else (None, 0.0)
+        return volume, float(total), walls, deep
+
+    def off_volume(self, total: float) -> bool:
+        """Whether a whole-volume change ``total`` lies outside the accepted range."""
+        return self.volume_change is not None and not (
+            self.volume_change[0] <= total <= self.volume_change[1]
+        )
+
+
+def constraints(
+    cells: NDArray,
+    reference: NDArray,
+    skin: NDArray | None = None,
+    min_volume_ratio: float = 0.1,
+    volume_change: tuple[float, float] | None = None,
+    held: tuple[NDArray, NDArray] | None = None,
+    tolerance_mm: float = 1e-6,
+    max_sweeps: int = 2000,
+) -> Constraints:
+    """The constraints of valid shapes of a mesh (arguments as `project_valid`'s).
+
+    Raises
+    ------
+    ValueError
+        A reference element that is not right-handed, or a setting out of range.
+    """
+    cells = np.asarray(cells, np.int64)
+    reference = np.asarray(reference, np.float64)
+    if reference.ndim != 2 or reference.shape[1] != 3:
+        raise ValueError(f"reference must be (N, 3), got {reference.shape}")
+    if not 0 < min_volume_ratio < 1:
+        raise ValueError(f"min_volume_ratio must lie in (0, 1), got {min_volume_ratio!r}")
+    if volume_change is not None and not volume_change[0] < volume_change[1]:
+        raise ValueError(f"volume_change must be (lower, upper), got {volume_change!r}")
+    volume = signed_volume(reference, cells)
+    if (volume <= 0).any():
+        raise ValueError(f"{int((volume <= 0).sum())} reference elements are not right-handed")
+    return Constraints(
+        cells=cells,
+        reference=reference,
+        volume=volume,
+        target=min_volume_ratio * volume,
+        size=np.cbrt(6 * np.sqrt(2) * volume),
+        free=free_projectors(len(reference), held),
+        skin=None if skin is None else np.asarray(skin, np.int64),
+        volume_change=volume_change,
+        tolerance_mm=tolerance_mm,
+        max_sweeps=max_sweeps,
+        min_volume_ratio=min_volume_ratio,
+    )
+
+
+def project(c: Constraints, points: NDArray, plates: NDArray | None = None) -> Projection:
+    """The shape ``points`` (N, 3) moved as little as position-based projection can until it
+    satisfies ``c`` (with ``plates`` (2, 3, 3) when ``c`` has skin nodes): the held directions
+    first, then Jacobi sweeps.
+
+    Raises
+    ------
+    ValueError
+        ``points`` of another shape than the reference, or plates without skin nodes.
+    ProjectionFailed
+        Some constraint still fails after ``c.max_sweeps`` sweeps.
+    """
+    x0 = np.asarray(points, np.float64)
+    if x0.shape != c.reference.shape:
+        raise ValueError(f"points {x0.shape} and reference {c.reference.shape} must both be (N, 3)")
+    if (plates is None) != (c.skin is None):
+        raise ValueError("plates and skin go together")
+    x = c.held(x0)  # held as in ``reference``
+    sweeps = 0
+    for sweeps in range(c.max_sweeps + 1):
+        volume, total, walls, deep = c.measure(x, plates)
+        bad = volume < c.target
+        off_volume = c.off_volume(total)
+        if not bad.any() and not off_volume and deep <= c.tolerance_mm:
+            break
+        if sweeps == c.max_sweeps:
+            raise ProjectionFailed(
+                f"after {c.max_sweeps} sweeps: {int(bad.sum())} elements below volume ratio "
+                f"{c.min_volume_ratio:g}, volume change {100 * total:+.2f} %, "
+                f"{deep:.3g} mm inside a plate"
+            )
+        deficit = OVERSHOOT * c.target[bad] - volume[bad]
+        x = _element_sweep(x, c.cells, bad, deficit, c.size[bad], c.free, walls)
+        if off_volume:
+            lower, upper = c.volume_change
+            margin = 0.1 * (upper - lower)  # aim inside: the linearised step lands near it
+            goal = (1.0 + np.clip(total, lower + margin, upper - margin)) * c.volume.sum()
+            deficit = goal - signed_volume(x, c.cells).sum()
+            x = _whole_volume_step(x, c.cells, deficit, float(np.median(c.size)), c.free)
+        if plates is not None:
+            x = _plate_step(x, c.skin, plates)
+    return _projection(x0, x, sweeps, volume, c.volume, total, deep)
+
+
+def _projection(
+    x0: NDArray, x: NDArray, sweeps: int, volume: NDArray, v_ref: NDArray, total: float, deep: float
+) -> Projection:
+    moved = np.linalg.norm(x - x0, axis=-1)
+    return Projection(
+        points=x,
+        sweeps=sweeps,
+        moved_rms_mm=float(np.sqrt(np.mean(moved**2))),
+        moved_max_mm=float(moved.max(initial=0.0)),
+        min_volume_ratio=float((volume / v_ref).min()),
+        volume_change=float(total),
+        max_penetration_mm=float(deep),
+    )
+
+
 def project_valid(
     cells: NDArray,
     reference: NDArray,
@@ -149,61 +315,86 @@ def project_valid(
     ProjectionFailed
         Some constraint still fails after ``max_sweeps`` sweeps.
     """
-    cells = np.asarray(cells, np.int64)
-    x0 = np.asarray(points, np.float64)
-    reference = np.asarray(reference, np.float64)
-    if x0.shape != reference.shape or x0.ndim != 2 or x0.shape[1] != 3:
-        raise ValueError(f"points {x0.shape} and reference {reference.shape} must both be (N, 3)")
-    if not 0 < min_volume_ratio < 1:
-        raise ValueError(f"min_volume_ratio must lie in (0, 1), got {min_volume_ratio!r}")
-    if (plates is None) != (skin is None):
+    c = constraints(
+        cells, reference, skin, min_volume_ratio, volume_change, held, tolerance_mm, max_sweeps
+    )
+    return project(c, points, plates)
+
+
+@dataclass(frozen=True)
+class StepProjections:
+    """Every step of a trajectory projected (`project_steps`).
+
+    Attributes
+    ----------
+    points : (T, N, 3) float64
+        The valid shapes, mm; a failed step's is its input (held directions removed).
+    sweeps : (T,) int
+        Jacobi sweeps per step (0: valid once the held directions were removed).
+    moved_rms_mm, moved_max_mm : (T,) float
+        RMS and largest node displacement from the input, mm.
+    min_volume_ratio : (T,) float
+        Smallest ``V_e / V_e(reference)`` per step.
+    failed : dict[int, str]
+        The steps no valid shape was found for, with why.
+    """
+
+    points: NDArray[np.float64]
+    sweeps: NDArray[np.int64]
+    moved_rms_mm: NDArray[np.float64]
+    moved_max_mm: NDArray[np.float64]
+    min_volume_ratio: NDArray[np.float64]
+    failed: dict[int, str]
+
+
+def project_steps(c: Constraints, steps: NDArray, plates: NDArray | None = None) -> StepProjections:
+    """Every shape of ``steps`` (T, N, 3) projected onto ``c`` (with the plates of each step,
+    ``plates`` (T, 2, 3, 3), when ``c`` has skin nodes).
+
+    The held directions are removed from all steps at once and every step's constraints
+    measured in one vectorised pass; only the steps still invalid then run `project`'s
+    sweeps, so a trajectory that is valid but for its held directions costs a few array
+    passes, not a loop of sweeps.
+    """
+    x0 = np.asarray(steps, np.float64)
+    if x0.ndim != 3 or x0.shape[1:] != c.reference.shape:
+        raise ValueError(f"steps {x0.shape} must be (T, {len(c.reference)}, 3)")
+    if (plates is None) != (c.skin is None):
         raise ValueError("plates and skin go together")
-    if volume_change is not None and not volume_change[0] < volume_change[1]:
-        raise ValueError(f"volume_change must be (lower, upper), got {volume_change!r}")
-    v_ref = signed_volume(reference, cells)
-    if (v_ref <= 0).any():
-        raise ValueError(f"{int((v_ref <= 0).sum())} reference elements are not right-handed")
-    target = min_volume_ratio * v_ref
-    size = np.cbrt(6 * np.sqrt(2) * v_ref)  # the edge of a regular tetrahedron of that volume
-    total_ref = v_ref.sum()
-    free = free_projectors(len(x0), held)  # (N, 3, 3)
-    x = reference + np.einsum("nij,nj->ni", free, x0 - reference)  # held as in ``reference``
-    sweeps = 0
-    for sweeps in range(max_sweeps + 1):
-        volume = signed_volume(x, cells)
-        bad = volume < target
-        total = volume.sum() / total_ref - 1.0
-        off_volume = volume_change is not None and not (
-            volume_change[0] <= total <= volume_change[1]
+    x = c.held(x0)
+    volume = signed_volume(x, c.cells)  # (T, E)
+    total = volume.sum(axis=1) / c.volume.sum() - 1.0
+    deep = (
+        np.array(
+            [plate_depth(xt, c.skin, p).max(initial=0.0) for xt, p in zip(x, plates, strict=True)]
         )
-        walls, deep = _plate_contact(x, skin, plates) if plates is not None else (None, 0.0)
-        if not bad.any() and not off_volume and deep <= tolerance_mm:
-            break
-        if sweeps == max_sweeps:
-            raise ProjectionFailed(
-                f"after {max_sweeps} sweeps: {int(bad.sum())} elements below volume ratio "
-                f"{min_volume_ratio:g}, volume change {100 * total:+.2f} %, "
-                f"{deep:.3g} mm inside a plate"
-            )
-        deficit = OVERSHOOT * target[bad] - volume[bad]
-        x = _element_sweep(x, cells, bad, deficit, size[bad], free, walls)
-        if off_volume:
-            lower, upper = volume_change
-            margin = 0.1 * (upper - lower)  # aim inside: the linearised step lands near it
-            goal = (1.0 + np.clip(total, lower + margin, upper - margin)) * total_ref
-            deficit = goal - signed_volume(x, cells).sum()
-            x = _whole_volume_step(x, cells, deficit, float(np.median(size)), free)
-        if plates is not None:
-            x = _plate_step(x, skin, plates)
-    moved = np.linalg.norm(x - x0, axis=1)  # volume, total, deep: of this x (the loop's last)
-    return Projection(
+        if plates is not None
+        else np.zeros(len(x))
+    )
+    sweeps = np.zeros(len(x), np.int64)
+    failed: dict[int, str] = {}
+    ratio = (volume / c.volume).min(axis=1)
+    for t in range(len(x)):
+        if (
+            (volume[t] >= c.target).all()
+            and not c.off_volume(total[t])
+            and deep[t] <= c.tolerance_mm
+        ):
+            continue
+        try:
+            p = project(c, x[t], None if plates is None else plates[t])
+        except ProjectionFailed as exc:
+            failed[t] = str(exc)
+            continue
+        x[t], sweeps[t], ratio[t] = p.points, p.sweeps, p.min_volume_ratio
+    moved = np.linalg.norm(x - x0, axis=-1)  # (T, N)
+    return StepProjections(
         points=x,
         sweeps=sweeps,
-        moved_rms_mm=float(np.sqrt(np.mean(moved**2))),
-        moved_max_mm=float(moved.max(initial=0.0)),
-        min_volume_ratio=float((volume / v_ref).min()),
-        volume_change=float(total),
-        max_penetration_mm=float(deep),
+        moved_rms_mm=np.sqrt(np.mean(moved**2, axis=1)),
+        moved_max_mm=moved.max(axis=1, initial=0.0),
+        min_volume_ratio=ratio,
+        failed=failed,
     )
 
 

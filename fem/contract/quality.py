@@ -18,19 +18,21 @@ def signed_volume(points: NDArray, cells: NDArray) -> NDArray[np.float64]:
 
     Parameters
     ----------
-    points : (N, 3) float
-        Node coordinates, mm.
+    points : (..., N, 3) float
+        Node coordinates, mm (several shapes of the mesh at once: leading axes).
     cells : (E, 4) int
         Node indices.
 
     Returns
     -------
-    (E,) float64
+    (..., E) float64
         Volume in mm^3, positive for the right-handed vertex order.
     """
-    p = points[cells]
-    a, b, c = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]
-    return np.einsum("ij,ij->i", np.cross(a, b), c) / 6.0
+    q = np.moveaxis(np.asarray(points), -1, 0)  # (3, ..., N): one contiguous gather per axis
+    x0 = q[..., cells[:, 0]]
+    a, b, c = (q[..., cells[:, k]] - x0 for k in (1, 2, 3))  # (3, ..., E) each
+    cross = (b[1] * c[2] - b[2] * c[1], b[2] * c[0] - b[0] * c[2], b[0] * c[1] - b[1] * c[0])
+    return (a[0] * cross[0] + a[1] * cross[1] + a[2] * cross[2]) / 6.0
 
 
 def face_normals(points: NDArray, cells: NDArray) -> NDArray[np.float64]:
