@@ -4,6 +4,7 @@
     python -m fem.cohort n_patients=258 out_dir=data/cohort/full workers=2
     python -m fem.cohort ... simulate=false      # meshes only
     python -m fem.cohort ... executor=dask       # on Dask distributed (docs/distributed.md)
+    python -m fem.cohort --config-name cohort_v2  # cohort v2: per-breast conditions, cc + mlo
 
 Per breast ``P0007_L`` it writes ``P0007_L.vtu`` (ParaView, tissue fields), ``P0007_L.png``
 (sections) and, last, ``P0007_L.npz`` (the `Trajectory`); a breast whose ``.npz`` exists is
@@ -15,6 +16,10 @@ With ``simulate=true`` (the default) a second stage then simulates both FE steps
 meshed breast (`fem.breasts.cohort_simulation`: ``<out_dir>/trajectories/``, equally resumable);
 ``refine=1`` simulates each on its mesh refined once (8x the elements) and records the
 positions at the breast's own nodes (`fem.breasts.cohort_simulation.simulate_refined`).
+``variation=v2`` (or ``--config-name cohort_v2``: the cohort v2, docs/cohort.md) simulates
+each breast with its own drawn stiffness, friction and compressed thickness in each view of
+the variation (`fem.breasts.conditions.ConditionSampler`; ``trajectories/`` for the first view,
+``trajectories_<view>/`` for another).
 """
 
 from __future__ import annotations
@@ -33,7 +38,8 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
 from fem import CONFIG_DIR
-from fem.breasts.cohort_simulation import simulate_cohort
+from fem.breasts.cohort_simulation import simulate_cohort, trajectory_folder
+from fem.breasts.conditions import ConditionSampler
 from fem.breasts.figures import breast_sections_png, cohort_summary_png
 from fem.breasts.io import write_mesh
 from fem.breasts.mesh import Mesher
@@ -247,8 +253,11 @@ def check_settings(out_dir: Path, cfg: DictConfig) -> None:
     """Refuse to resume a cohort made with other settings; record the settings otherwise.
 
     ``<out_dir>/cohort_config.json`` holds the generator's, the mesher's and (once simulated)
-    the simulation's settings of the breasts in ``out_dir``. ``n_patients`` may grow between
-    runs (the cohort is extended); every other setting must match.
+    the simulation's settings of the breasts in ``out_dir``, with the mesh refinement
+    (``refine``) and the per-breast variation of the conditions (``variation``, null for the
+    paper's cohort; a folder recorded before these settings existed resumes with 0 and null).
+    ``n_patients`` may grow between runs (the cohort is extended); every other setting must
+    match.
 
     Raises
     ------
@@ -259,11 +268,16 @@ def check_settings(out_dir: Path, cfg: DictConfig) -> None:
     requested = {g: OmegaConf.to_container(cfg[g], resolve=True) for g in groups}
     path = out_dir / "cohort_config.json"
     stored = json.loads(path.read_text()) if path.exists() else {}
-    if cfg.simulate:  # the simulation's mesh refinement (folders made before it: none)
-        groups += ("refine",)
+    if cfg.simulate:  # mesh refinement, per-breast variation (folders made before: 0, null)
+        groups += ("refine", "variation")
         requested["refine"] = cfg.refine
+        variation = cfg.get("variation")
+        requested["variation"] = (
+            None if variation is None else OmegaConf.to_container(variation, resolve=True)
+        )
         if stored:
             stored.setdefault("refine", 0)
+            stored.setdefault("variation", None)
     old, new = _flat({g: stored[g] for g in groups if g in stored}), _flat(requested)
     new = {k: v for k, v in new.items() if k.split(".")[0] in stored}
     differ = sorted(set(old) ^ set(new) | {k for k in set(old) & set(new) if old[k] != new[k]})
@@ -327,10 +341,12 @@ def run_cohort(cfg: DictConfig) -> dict:
 
     Every setting is checked before anything is written: ``n_patients`` and ``workers``, the
     executor (``executor``, ``scheduler``: `fem.breasts.pool.check_executor`), the output
-    folder, the generator, mesher and simulation built from ``cfg`` and compared with the
-    settings the folder's breasts were made with (`check_settings`). Both stages run their
-    per-breast tasks on one executor (`fem.breasts.pool.cohort_executor`): the local process
-    pool or Dask distributed, with the same files.
+    folder, the generator, mesher, simulation and variation (``variation``: per-breast
+    conditions, `fem.breasts.conditions.ConditionSampler`, null for the paper's cohort) built
+    from ``cfg`` and compared with the settings the folder's breasts were made with
+    (`check_settings`). Both stages run their per-breast tasks on one executor
+    (`fem.breasts.pool.cohort_executor`): the local process pool or Dask distributed, with the
+    same files.
 
     Raises
     ------
@@ -350,6 +366,10 @@ def run_cohort(cfg: DictConfig) -> dict:
     generator: PhantomGenerator = instantiate(cfg.generator)
     mesher: Mesher = instantiate(cfg.mesher)
     simulation: Simulation | None = instantiate(cfg.simulation) if cfg.simulate else None
+    variation: ConditionSampler | None = None
+    if simulation is not None and cfg.get("variation") is not None:
+        variation = instantiate(cfg.variation)
+        variation.check(simulation)
     out_dir.mkdir(parents=True, exist_ok=True)
     check_settings(out_dir, cfg)
     with cohort_executor(cfg.executor, cfg.workers, cfg.scheduler) as pool:
@@ -361,9 +381,21 @@ def run_cohort(cfg: DictConfig) -> dict:
         if simulation is not None:
             names = [breast_name(p, lat) for p in range(cfg.n_patients) for lat in LATERALITIES]
             report["simulation"] = simulate_cohort(
-                pool, out_dir, names, simulation, cfg.time_series, cfg.retry_failed, cfg.refine
+                pool,
+                out_dir,
+                names,
+                simulation,
+                cfg.time_series,
+                cfg.retry_failed,
+                cfg.refine,
+                variation,
             )
-            print((out_dir / "trajectories" / "simulation_summary.md").read_text())
+            views = (None,) if variation is None else variation.views
+            for i, view in enumerate(views):
+                folder = trajectory_folder(out_dir, i, view)
+                print(
+                    (f"{folder}:\n" if i else "") + (folder / "simulation_summary.md").read_text()
+                )
     return report
 
 

@@ -57,4 +57,5 @@ def test_a_resume_on_dask_skips_finished_breasts(cohorts):
     assert report["simulation"]["n_converged"] == 2
     _assert_same_arrays(cohorts["dask"] / "trajectories" / "P0000_R.npz", missing)
     recorded = json.loads((folder / "cohort_config.json").read_text())
-    assert set(recorded) == {"generator", "mesher", "simulation", "refine"}
+    assert set(recorded) == {"generator", "mesher", "simulation", "refine", "variation"}
+    assert recorded["variation"] is None  # the paper cohort's conditions

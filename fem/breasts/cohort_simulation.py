@@ -11,6 +11,14 @@ end the command, and nothing is stored for the breast. Either file marks the bre
 stopped (``retry_failed=true`` tries the failures again). Every file is written atomically.
 The report (``simulation.csv``, ``simulation.json``, ``simulation_summary.md`` and
 ``simulation_summary.png``) is rebuilt from all finished breasts at the end of each run.
+
+With a ``variation`` (`fem.breasts.conditions.ConditionSampler`, the cohort v2) every breast
+is simulated with its own drawn conditions (``dataclasses.replace(simulation, ...)``: materials,
+friction, view, angle, compression ratio) once per view of the variation: the first view's
+trajectories go to ``<out_dir>/trajectories/``, any other view's to
+``<out_dir>/trajectories_<view>/`` (``trajectories_mlo/``), each folder with the same file
+names (``P0007_L.npz``) and its own report. The trajectory's ``metadata["simulation"]`` records
+the conditions used, ``metadata["variation"]`` the draw (seed, view, factor, target ratio).
 """
 
 from __future__ import annotations
@@ -26,11 +34,12 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from fem.breasts.conditions import ConditionSampler
 from fem.breasts.figures import simulation_summary_png
 from fem.breasts.mesh import refine
 from fem.breasts.pool import one_blas_thread
 from fem.contract.atomic import atomic_path
-from fem.contract.projection import Projection, ProjectionFailed, project_valid
+from fem.contract.projection import StepProjections, constraints, project_steps
 from fem.contract.quality import signed_volume
 from fem.contract.timeseries import write_time_series
 from fem.contract.trajectory import NodeFlag, Trajectory
@@ -69,7 +78,7 @@ def simulate_refined(simulation: Simulation, traj: Trajectory, levels: int) -> T
 
     Sampled at the coarse nodes, the fine answer can invert coarse elements (the fine mesh
     folds where a coarse element cannot, docs/fem-convergence.md), so every recorded shape is
-    projected onto valid coarse shapes (`fem.contract.projection.project_valid`: each
+    projected onto valid coarse shapes (`fem.contract.projection.project_steps`: each
     element's volume ratio to the step's start at least `REFINED_MIN_VOLUME_RATIO`, no skin
     node inside a plate, the chest wall held as the step holds it). The metadata's
     checks are of the coarse mesh's elements after the projection; ``simulation`` also says
@@ -106,30 +115,26 @@ def simulate_refined(simulation: Simulation, traj: Trajectory, levels: int) -> T
         else HeldDirections.none()
     )
 
-    def valid(x: np.ndarray, start: np.ndarray, held, plates=None) -> Projection:
-        return project_valid(
+    def valid(steps: np.ndarray, start: np.ndarray, plates=None) -> StepProjections:
+        held = chest_wall(traj, start, simulation.chest_wall) + user  # as the step holds it
+        c = constraints(
             traj.cells,
             start,
-            x,
             None if plates is None else skin,
-            plates,
             REFINED_MIN_VOLUME_RATIO,
             held=(held.nodes, held.directions),
         )
+        p = project_steps(c, steps, plates)
+        if p.failed:  # the breast fails, the cohort goes on
+            step, why = next(iter(p.failed.items()))
+            seconds = result.metadata["simulation"]["seconds"]
+            raise SimulationFailed(traj.source, "projection", f"step {step + 1}: {why}", seconds)
+        return p
 
-    start = unloaded[-1] if len(unloaded) else traj.points
-    try:  # the chest wall as each step holds it, from that step's start
-        held = chest_wall(traj, traj.points, simulation.chest_wall) + user
-        projections = [valid(x, traj.points, held) for x in unloaded]
-        held = chest_wall(traj, start, simulation.chest_wall) + user
-        projections += [
-            valid(x, start, held, p) for x, p in zip(compressed, result.plates, strict=True)
-        ]
-    except ProjectionFailed as exc:  # the breast fails, the cohort goes on
-        seconds = result.metadata["simulation"]["seconds"]
-        raise SimulationFailed(traj.source, "projection", str(exc), seconds) from exc
-    shapes = np.array([p.points for p in projections])
-    unloaded, compressed = shapes[: len(unloaded)], shapes[len(unloaded) :]
+    projections = [valid(unloaded, traj.points)]
+    start = projections[0].points[-1] if len(unloaded) else traj.points
+    projections.append(valid(compressed, start, result.plates))
+    unloaded, compressed = (p.points for p in projections)
     start = unloaded[-1] if len(unloaded) else traj.points
     checks = shape_changes(traj.points, traj.cells, start, compressed[-1])
     metadata = dict(result.metadata)
@@ -141,9 +146,9 @@ def simulate_refined(simulation: Simulation, traj: Trajectory, levels: int) -> T
         "projection": {
             "min_volume_ratio": REFINED_MIN_VOLUME_RATIO,
             "min_element_volume_ratio_before": float(before.min()),
-            "steps_moved": sum(p.sweeps > 0 for p in projections),
-            "moved_rms_mm": max(p.moved_rms_mm for p in projections),
-            "moved_max_mm": max(p.moved_max_mm for p in projections),
+            "steps_moved": int(sum((p.sweeps > 0).sum() for p in projections)),
+            "moved_rms_mm": float(max(p.moved_rms_mm.max(initial=0.0) for p in projections)),
+            "moved_max_mm": float(max(p.moved_max_mm.max(initial=0.0) for p in projections)),
         },
     }
     return replace(
@@ -156,6 +161,40 @@ def simulate_refined(simulation: Simulation, traj: Trajectory, levels: int) -> T
     )
 
 
+def trajectory_folder(mesh_dir: Path, view_index: int = 0, view: str | None = None) -> Path:
+    """Where the cohort's simulated breasts of a view go: ``<mesh_dir>/trajectories`` for the
+    first (or only) view, ``<mesh_dir>/trajectories_<view>`` for any other view of a
+    variation."""
+    return mesh_dir / ("trajectories" if view_index == 0 else f"trajectories_{view}")
+
+
+def varied(
+    simulation: Simulation,
+    variation: ConditionSampler,
+    traj: Trajectory,
+    name: str,
+    view: str | None = None,
+) -> tuple[Simulation, Trajectory]:
+    """``simulation`` with breast ``name``'s drawn conditions in ``view``
+    (`ConditionSampler.sample` around the breast's target ratio), and ``traj`` with the draw
+    in its metadata (``variation``: seed, view, compression-ratio factor, target ratio).
+
+    Raises
+    ------
+    ValueError
+        No target compression ratio (`Simulation.target_ratio`), or a view not sampled.
+    """
+    draw = variation.sample(name, simulation.target_ratio(traj), view)
+    record = {
+        "seed": variation.seed,
+        "view": draw["view"],
+        "compression_ratio_factor": draw["compression_ratio_factor"],
+        "target_compression_ratio": draw["compression_ratio"],
+    }
+    traj = replace(traj, metadata={**traj.metadata, "variation": record})
+    return replace(simulation, **variation.overrides(simulation, draw)), traj
+
+
 @one_blas_thread
 def simulate_breast(
     simulation: Simulation,
@@ -163,9 +202,12 @@ def simulate_breast(
     out_dir: Path,
     time_series: bool = False,
     refine_levels: int = 0,
+    variation: ConditionSampler | None = None,
+    view: str | None = None,
 ) -> dict:
     """Simulate one meshed breast (on its mesh refined ``refine_levels`` times:
-    `simulate_refined`) and write its result or its failure; returns its report row."""
+    `simulate_refined`; with a ``variation``, with its drawn conditions in ``view``: `varied`)
+    and write its result or its failure; returns its report row."""
     traj = Trajectory.load(mesh)
     traj.metadata.setdefault("source", str(mesh))
     row = {
@@ -174,6 +216,8 @@ def simulate_breast(
         "n_elements": traj.n_cells,
         "target_compression_ratio": traj.metadata.get("target_compression_ratio", float("nan")),
     }
+    if variation is not None:
+        simulation, traj = varied(simulation, variation, traj, mesh.stem, view)
     try:
         row["target_compression_ratio"] = simulation.target_ratio(traj)
         result = simulate_refined(simulation, traj, refine_levels)
@@ -220,12 +264,15 @@ def finished_rows(out_dir: Path, names: Sequence[str]) -> list[dict]:
             with np.load(result, allow_pickle=False) as z:
                 meta = json.loads(str(z["metadata"]))
                 n_elements = len(z["cells"])
+            target = meta.get("variation", {}).get(
+                "target_compression_ratio", meta.get("target_compression_ratio")
+            )  # a variation's jittered target, else the breast's own
             rows.append(
                 {
                     "name": name,
                     "volume_cm3": meta.get("breast_volume_cm3", float("nan")),
                     "n_elements": n_elements,
-                    "target_compression_ratio": meta.get("target_compression_ratio"),
+                    "target_compression_ratio": target,
                     **result_row(meta),
                 }
             )
@@ -317,45 +364,70 @@ def simulate_cohort(
     time_series: bool = False,
     retry_failed: bool = False,
     refine_levels: int = 0,
+    variation: ConditionSampler | None = None,
 ) -> dict:
     """Simulate every unfinished breast of ``names`` (meshes in ``mesh_dir``) on ``pool``, on
-    its mesh refined ``refine_levels`` times (`simulate_refined`).
+    its mesh refined ``refine_levels`` times (`simulate_refined`); with a ``variation``, each
+    with its own drawn conditions, once per view of the variation (`varied`).
 
-    Results go to ``mesh_dir / "trajectories"``; returns the report.
+    Results go to ``mesh_dir / "trajectories"`` (a variation's other views: to
+    ``trajectories_<view>``, `trajectory_folder`); a breast whose result or failure file is
+    in its folder is finished and skipped. Returns the report of the first folder; with
+    several views, ``by_view`` holds every view's report.
+
+    Raises
+    ------
+    ValueError
+        A variation that cannot apply to ``simulation`` (`ConditionSampler.check`), or bad
+        settings or input met while simulating.
     """
-    out_dir = mesh_dir / "trajectories"
-    out_dir.mkdir(parents=True, exist_ok=True)
-    if retry_failed:
-        for name in names:
-            (out_dir / f"{name}.failed.json").unlink(missing_ok=True)
+    if variation is not None:
+        variation.check(simulation)
+    views: tuple[str | None, ...] = (None,) if variation is None else tuple(variation.views)
+    folders = {view: trajectory_folder(mesh_dir, i, view) for i, view in enumerate(views)}
+    for out_dir in folders.values():
+        out_dir.mkdir(parents=True, exist_ok=True)
+        if retry_failed:
+            for name in names:
+                (out_dir / f"{name}.failed.json").unlink(missing_ok=True)
     todo = [
-        n
+        (n, view)
+        for view, out_dir in folders.items()
         for n in names
         if (mesh_dir / f"{n}.npz").exists()
         and not (out_dir / f"{n}.npz").exists()
         and not (out_dir / f"{n}.failed.json").exists()
     ]
+    total = len(names) * len(views)
     t0 = time.perf_counter()
     with tqdm(
-        total=len(names),
-        initial=len(names) - len(todo),
+        total=total,
+        initial=total - len(todo),
         unit="breast",
-        desc=f"simulate -> {out_dir}",
+        desc=f"simulate -> {folders[views[0]]}"
+        + (f" (+{len(views) - 1} views)" if len(views) > 1 else ""),
     ) as bar:
         futures = {
             pool.submit(
                 simulate_breast,
                 simulation,
                 mesh_dir / f"{n}.npz",
-                out_dir,
+                folders[view],
                 time_series,
                 refine_levels,
+                variation,
+                view,
             ): n
-            for n in todo
+            for n, view in todo
         }
         for fut in as_completed(futures):
             row = fut.result()
             if row["status"] != "ok":
                 tqdm.write(f"FAILED {row['name']} ({row['step']}): {row['reason']}")
             bar.update()
-    return write_simulation_report(out_dir, names, time.perf_counter() - t0)
+    wall_s = time.perf_counter() - t0
+    reports = {view: write_simulation_report(d, names, wall_s) for view, d in folders.items()}
+    report = reports[views[0]]
+    if len(views) > 1:
+        report = {**report, "by_view": reports}
+    return report
