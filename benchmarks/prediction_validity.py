@@ -1,0 +1,146 @@
+"""Are a run's predicted shapes physically valid, and what does the validity projection cost
+them? For each model of each run folder (``predictions/<model>.npz``, the validation breasts of
+its split), per breast: inverted elements (signed volume <= 0) over all predicted steps and at
+the last step, skin nodes deeper than 0.5 mm inside a plate (compression), then the same after
+`mammo_net.validity.ValidityProjection` (predict.py's default), its wall time and the last
+step's RMSE against the FE before and after it.
+
+    python benchmarks/prediction_validity.py results/cv/mesh_gnn/compression/fold0 \
+        results/cv/xgboost/compression/fold0 --out /tmp/validity.json
+
+The unloaded-state runs project the predicted unloaded steps; the compression runs take the
+FE's unloaded state as the compression's start (the models of one step are judged alone).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import time
+from pathlib import Path
+
+import numpy as np
+
+from datamodules.trajectories import TrajectoryDataModule
+from fem.contract.projection import plate_depth
+from fem.contract.quality import signed_volume
+from fem.contract.trajectory import NodeFlag, Trajectory
+from mammo_net.inference import load_predictions
+from mammo_net.metrics import breast_rmse
+from mammo_net.predictor import BreastShapes
+from mammo_net.validity import ValidityProjection
+
+#: Depth inside a plate from which a skin node counts as penetrating, mm (`PhysicalChecks`).
+PLATE_TOLERANCE_MM = 0.5
+
+
+def shapes_of(traj: Trajectory, step: str, predicted: np.ndarray) -> BreastShapes:
+    """A breast's predicted steps (T, N, 3) of ``step`` as `BreastShapes`, the other step's
+    shapes (and the plates) from the FE."""
+    if step == "unloaded":
+        compressed, plates, ratio = traj.compressed, traj.plates, traj.compression_ratio
+        unloaded = predicted
+    else:
+        compressed, plates, ratio = predicted, traj.plates, traj.compression_ratio
+        unloaded = traj.unloaded
+    return BreastShapes(
+        unloaded.astype(np.float32),
+        compressed[None].astype(np.float32),
+        plates[None],
+        ratio[None],
+        np.array([float(traj.metadata["simulation"]["compressed_thickness_mm"])]),
+    )
+
+
+def violations(traj: Trajectory, step: str, shapes: BreastShapes) -> dict[str, int]:
+    """Inverted elements over all steps and at the last one, and penetrating skin nodes."""
+    steps = shapes.unloaded if step == "unloaded" else shapes.compressed[0]
+    volume = signed_volume(steps.astype(np.float64), traj.cells)  # (T, E)
+    out = {
+        "inverted_all_steps": int((volume <= 0).sum()),
+        "inverted_last_step": int((volume[-1] <= 0).sum()),
+        "penetrating_nodes": 0,
+    }
+    if step == "compression":
+        skin = traj.flagged(NodeFlag.SKIN)
+        out["penetrating_nodes"] = int(
+            sum(
+                (plate_depth(x.astype(np.float64), skin, p) > PLATE_TOLERANCE_MM).sum()
+                for x, p in zip(steps, shapes.plates[0], strict=True)
+            )
+        )
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument("runs", nargs="+", help="train.py run folders with predictions/")
+    ap.add_argument("--limit", type=int, default=None, help="the first breasts only")
+    ap.add_argument("--out", type=Path, default=None, help="per-breast rows as JSON")
+    args = ap.parse_args()
+    projection = ValidityProjection()
+    rows = []
+    print(
+        "| run | model | breasts | with inverted elements, before / after | inverted, all steps,"
+        " before / after | penetrating skin nodes, before / after | projection (ms, median)"
+        " | last-step RMSE before / after (mm, mean) |"
+    )
+    print("| --- | --- | --- | --- | --- | --- | --- | --- |")
+    for run in map(Path, args.runs):
+        dm = TrajectoryDataModule.from_run(run)
+        step = dm.hparams.step
+        for file in sorted((run / "predictions").glob("*.npz")):
+            predictions = load_predictions(file)
+            names = sorted(predictions)[: args.limit]
+            model_rows = []
+            for name in names:
+                traj = Trajectory.load(dm.data_dir / f"{name}.npz")
+                truth = traj.unloaded if step == "unloaded" else traj.compressed
+                shapes = shapes_of(traj, step, predictions[name].transpose(1, 0, 2))
+                start = time.perf_counter()
+                projected, _ = projection(traj, shapes)
+                seconds = time.perf_counter() - start
+                after = projected.unloaded if step == "unloaded" else projected.compressed[0]
+                before = shapes.unloaded if step == "unloaded" else shapes.compressed[0]
+                rmse = [
+                    breast_rmse(x.transpose(1, 0, 2), truth.transpose(1, 0, 2))["last_step"]
+                    for x in (before, after)
+                ]
+                model_rows.append(
+                    {
+                        "run": str(run),
+                        "model": file.stem,
+                        "breast": name,
+                        "before": violations(traj, step, shapes),
+                        "after": violations(traj, step, projected),
+                        "projection_s": seconds,
+                        "rmse_last_step_mm": rmse,
+                    }
+                )
+            rows += model_rows
+
+            def total(when: str, key: str, rows=model_rows) -> int:
+                return sum(r[when][key] for r in rows)
+
+            def breasts(when: str, rows=model_rows) -> int:
+                return sum(r[when]["inverted_all_steps"] > 0 for r in rows)
+
+            ms = 1e3 * statistics.median(r["projection_s"] for r in model_rows)
+            rmse = np.mean([r["rmse_last_step_mm"] for r in model_rows], axis=0)
+            print(
+                f"| {run} | {file.stem} | {len(model_rows)} | {breasts('before')} / "
+                f"{breasts('after')} | {total('before', 'inverted_all_steps')} / "
+                f"{total('after', 'inverted_all_steps')} | "
+                f"{total('before', 'penetrating_nodes')} / {total('after', 'penetrating_nodes')}"
+                f" | {ms:.0f} | {rmse[0]:.3f} / {rmse[1]:.3f} |",
+                flush=True,
+            )
+    if args.out:
+        args.out.write_text(json.dumps(rows, indent=1))
+
+
+if __name__ == "__main__":
+    main()
