@@ -136,7 +136,9 @@ def assert_compression_invariants(mesh, start, x, plates):
     u = x - start
     assert np.abs(u[muscle]).max() == 0.0
     normals = chest_wall_normals(start[interface])
-    assert np.abs(np.einsum("ij,ij->i", u[interface], normals)).max() < 1e-9
+    # exact up to round-off: relative to the largest displacement (a 20k breast: 2.5e-9 mm)
+    along = np.abs(np.einsum("ij,ij->i", u[interface], normals)).max()
+    assert along < 1e-9 * max(1.0, np.abs(u).max())
 
 
 def test_compression_thicker_than_breast(breast_mesh, unloaded):
