@@ -2,7 +2,8 @@
 them? For each model of each run folder (``predictions/<model>.npz``, the validation breasts of
 its split), per breast: inverted elements (signed volume <= 0) over all predicted steps and at
 the last step, skin nodes deeper than 0.5 mm inside a plate (compression), then the same after
-`mammo_net.validity.ValidityProjection` (predict.py's default), its wall time and the last
+`mammo_net.validity.ValidityProjection` (predict.py's default, or another
+``--min-volume-ratio``), its wall time and the last
 step's RMSE against the FE before and after it.
 
     python benchmarks/prediction_validity.py results/cv/mesh_gnn/compression/fold0 \
@@ -80,8 +81,12 @@ def main() -> None:
     ap.add_argument("runs", nargs="+", help="train.py run folders with predictions/")
     ap.add_argument("--limit", type=int, default=None, help="the first breasts only")
     ap.add_argument("--out", type=Path, default=None, help="per-breast rows as JSON")
+    ap.add_argument(
+        "--min-volume-ratio", type=float, default=ValidityProjection.min_volume_ratio,
+        help="the projection's smallest element volume / reference volume",
+    )  # fmt: skip
     args = ap.parse_args()
-    projection = ValidityProjection()
+    projection = ValidityProjection(min_volume_ratio=args.min_volume_ratio)
     rows = []
     print(
         "| run | model | breasts | with inverted elements, before / after | inverted, all steps,"

@@ -23,6 +23,7 @@ import json
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from types import MappingProxyType
 
 import numpy as np
 import torch
@@ -78,7 +79,9 @@ NODE_STEP_INPUTS = {
 }
 
 #: The paper cohort's Young's moduli (Pa): the stiffness inputs are log-ratios to them.
-REFERENCE_YOUNG = {"fat": 1100.0, "gland": 2500.0, "muscle": 6000.0, "skin": 1000.0}
+REFERENCE_YOUNG = MappingProxyType(
+    {"fat": 1100.0, "gland": 2500.0, "muscle": 6000.0, "skin": 1000.0}
+)
 
 #: Per-breast inputs: the simulation's conditions (`Conditions.vector`).
 CONDITION_FEATURES = (
@@ -119,6 +122,7 @@ class Conditions:
     angle: float = 45.0
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "young", MappingProxyType(dict(self.young)))  # a copy, read-only
         missing = set(REFERENCE_YOUNG) - set(self.young)
         if missing:
             raise ValueError(f"conditions.young: no modulus for {sorted(missing)}")
@@ -173,9 +177,12 @@ PAPER_CONDITIONS = Conditions(REFERENCE_YOUNG, 0.25, "cc", 45.0)
 
 def mesh_edges(cells: NDArray) -> NDArray[np.int64]:
     """The directed edges of a tetrahedral mesh, both directions of each edge once, (2, 2 M)."""
-    pairs = np.concatenate([cells[:, [i, j]] for i in range(4) for j in range(i + 1, 4)])
-    pairs = np.unique(np.sort(pairs, axis=1), axis=0)  # (M, 2) undirected
-    return np.concatenate([pairs, pairs[:, ::-1]]).T.astype(np.int64)
+    cells = np.asarray(cells, np.int64)
+    pairs = np.sort(np.concatenate([cells[:, [i, j]] for i in range(4) for j in range(i + 1, 4)]))
+    n = int(cells.max(initial=0)) + 1
+    code = np.unique(pairs[:, 0] * n + pairs[:, 1])  # (M,) undirected, sorted as (low, high)
+    low, high = code // n, code % n
+    return np.stack([np.concatenate([low, high]), np.concatenate([high, low])])
 
 
 def node_inputs(

@@ -21,6 +21,7 @@ from datamodules.graphs import (
 )
 from fem.breasts.mesh import refine
 from fem.contract.trajectory import Trajectory
+from mammo_net.models import interpolate_steps, step_knots
 from mammo_net.module import MeshGraphModule, NetworkModule, SurrogateModule
 from mammo_net.predictor import load_surrogate, predict_breast
 from tests.conftest import SIMULATION_METADATA, tiny_trajectory
@@ -69,6 +70,13 @@ def test_conditions_read_and_refused():
         Conditions({"fat": 1.0, "gland": 1.0, "muscle": 1.0}, 0.25, "cc")
     with pytest.raises(ValueError, match=r"P9\.npz: metadata field 'simulation'"):
         Conditions.of_metadata({}, "P9.npz")
+    # the moduli are a read-only copy: a caller's dict changed later changes no conditions
+    young = dict(PAPER_CONDITIONS.young)
+    mine = Conditions(young, 0.25, "cc")
+    young["fat"] = 1.0
+    assert mine == PAPER_CONDITIONS
+    with pytest.raises(TypeError):
+        PAPER_CONDITIONS.young["fat"] = 1.0  # type: ignore[index]
 
 
 def test_batch_offsets_edges_and_refuses_other_step_counts():
@@ -174,3 +182,35 @@ def test_training_decodes_a_sample_of_the_steps_with_the_last():
     assert model.sampled_steps(10) is None  # fewer steps than the sample: all
     with pytest.raises(ValueError, match="train_steps must be at least 1"):
         MeshGraphModule("compression", train_steps=0)
+
+
+def test_knots_decode_evenly_spaced_steps_and_interpolate_the_rest():
+    knots = step_knots(70, 20)
+    assert len(knots) == 20 and knots[-1] == 69 and knots[0] > 0 and (knots.diff() > 0).all()
+    assert torch.equal(step_knots(3, 20), torch.arange(3))
+    # a trajectory linear in the step index from its start is reproduced exactly
+    start, velocity = torch.randn(5, 3), torch.randn(5, 3)
+    exact = start + (torch.arange(70)[:, None, None] + 1.0) * velocity  # (T, N, 3)
+    torch.testing.assert_close(interpolate_steps(start, exact[knots], knots, 70), exact)
+    # the model's knotted trajectory equals its own decode at the knots, between them a chord
+    model = _model().eval()
+    sample, _ = graph_sample(_traj("L"), "compression")
+    sample = {
+        **sample,
+        "steps": np.repeat(sample["steps"], 10, axis=0),  # 30 steps
+        "node_steps": np.repeat(sample["node_steps"], 10, axis=0),
+    }
+    batch = batch_graphs([sample])
+    model.hparams.knots = 4
+    knots = step_knots(30, 4)
+    with torch.no_grad():
+        knotted = model(batch)
+        decoded = model(batch, decoded=knots)
+    assert knotted.shape == (30, 5, 3)
+    torch.testing.assert_close(knotted[knots], decoded)
+    a, b = knots[0].item(), knots[1].item()
+    mid = (a + b) // 2
+    w = (mid - a) / (b - a)
+    torch.testing.assert_close(knotted[mid], (1 - w) * decoded[0] + w * decoded[1])
+    with pytest.raises(ValueError, match="knots must be at least 1"):
+        MeshGraphModule("compression", knots=0)
