@@ -40,6 +40,7 @@ from datamodules.trajectories import (
 )
 from fem.contract.atomic import atomic_path
 from fem.contract.plates import ORIGIN, plate_basis
+from fem.contract.quality import mesh_edges
 from fem.contract.trajectory import NodeFlag, Trajectory, read_npz
 
 #: Per-node inputs (both steps): normalised input coordinates in the step's frame, flags,
@@ -175,16 +176,6 @@ class Conditions:
 PAPER_CONDITIONS = Conditions(REFERENCE_YOUNG, 0.25, "cc", 45.0)
 
 
-def mesh_edges(cells: NDArray) -> NDArray[np.int64]:
-    """The directed edges of a tetrahedral mesh, both directions of each edge once, (2, 2 M)."""
-    cells = np.asarray(cells, np.int64)
-    pairs = np.sort(np.concatenate([cells[:, [i, j]] for i in range(4) for j in range(i + 1, 4)]))
-    n = int(cells.max(initial=0)) + 1
-    code = np.unique(pairs[:, 0] * n + pairs[:, 1])  # (M,) undirected, sorted as (low, high)
-    low, high = code // n, code % n
-    return np.stack([np.concatenate([low, high]), np.concatenate([high, low])])
-
-
 def node_inputs(
     traj: Trajectory, geometry: NDArray, norm: Normalization, upper: NDArray
 ) -> NDArray:
@@ -211,9 +202,10 @@ def node_inputs(
 
 
 def unloaded_graph_inputs(
-    traj: Trajectory, n_steps: int, conditions: Conditions
+    traj: Trajectory, n_steps: int, conditions: Conditions, edges: NDArray | None = None
 ) -> tuple[dict[str, NDArray], Normalization]:
-    """The unloaded-state step's graph inputs of a breast mesh, simulated or not.
+    """The unloaded-state step's graph inputs of a breast mesh, simulated or not (``edges``:
+    its `mesh_edges`, computed when not given).
 
     Returns
     -------
@@ -227,7 +219,7 @@ def unloaded_graph_inputs(
     upper = (traj.node_flags & NodeFlag.UPPER_CONTACT) > 0
     sample = {
         "nodes": node_inputs(traj, traj.points, norm, upper),
-        "edges": mesh_edges(traj.cells),
+        "edges": mesh_edges(traj.cells) if edges is None else edges,
         "steps": (np.arange(1, n_steps + 1, dtype=np.float32) / n_steps)[:, None],
         "node_steps": np.zeros((n_steps, traj.n_nodes, 0), np.float32),
         "conditions": conditions.vector(),
@@ -241,6 +233,7 @@ def compression_graph_inputs(
     plates: NDArray,
     compression_ratio: NDArray,
     conditions: Conditions,
+    edges: NDArray | None = None,
 ) -> tuple[dict[str, NDArray], Normalization]:
     """The compression step's graph inputs of a breast mesh from its unloaded shape and the
     plates' schedule (simulated, or placed by `fem.engine.boundary.plate_schedule`).
@@ -257,6 +250,8 @@ def compression_graph_inputs(
         Per recorded step.
     conditions : Conditions
         Stiffness, friction, view.
+    edges : (2, 2M) int, optional
+        The mesh's `mesh_edges`, computed when not given.
 
     Returns
     -------
@@ -286,7 +281,7 @@ def compression_graph_inputs(
     node_steps = np.stack([z[None] - lower[:, 2:3], upper[:, 2:3] - z[None]], axis=-1)
     sample = {
         "nodes": nodes,
-        "edges": mesh_edges(traj.cells),
+        "edges": mesh_edges(traj.cells) if edges is None else edges,
         "steps": steps,
         "node_steps": node_steps.astype(np.float32),
         "conditions": conditions.vector(),

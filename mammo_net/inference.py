@@ -66,7 +66,8 @@ def graph_predictor(
     check_precision(precision)
 
     def predict(sample: Mapping[str, NDArray]) -> NDArray[np.float32]:
-        model.eval()
+        if model.training:
+            model.eval()
         device = next(model.parameters()).device
         inputs = {k: v for k, v in sample.items() if k != "targets"}
         batch = {k: v.to(device) for k, v in batch_graphs([inputs]).items()}

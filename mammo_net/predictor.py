@@ -42,6 +42,7 @@ from fem.breasts.io import write_mesh
 from fem.contract.atomic import atomic_path
 from fem.contract.landmarks import SOURCE_TO_IMAGE_MM, carry, locate, project_cc
 from fem.contract.plates import ORIGIN
+from fem.contract.quality import mesh_edges
 from fem.contract.timeseries import write_time_series
 from fem.contract.trajectory import Trajectory, reading_file
 from fem.engine.boundary import plate_schedule
@@ -177,6 +178,7 @@ def predict_breast(
                 f"{source}: the {model.name} model was trained on the paper's conditions only "
                 f"({PAPER_CONDITIONS}); other stiffness, friction or views need a graph model"
             )
+    edges = mesh_edges(traj.cells)  # of both steps' graphs
     if unloaded is None:
         if not len(traj.unloaded):
             raise ValueError(f"{source}: no unloaded-state model and no FE 'unloaded' field")
@@ -184,7 +186,7 @@ def predict_breast(
     else:
         unloaded.check("unloaded", f"{source}: unloaded-state model {unloaded.name}")
         if unloaded.graph:
-            sample, norm = unloaded_graph_inputs(traj, unloaded.schema.n_steps, conditions)
+            sample, norm = unloaded_graph_inputs(traj, unloaded.schema.n_steps, conditions, edges)
             steps = norm.invert(unloaded.predict(sample)).transpose(1, 0, 2)
         else:
             features, norm = unloaded_inputs(traj, unloaded.schema.n_steps)  # (T1, N, 11)
@@ -200,7 +202,9 @@ def predict_breast(
     if compression.graph:  # one pass per thickness
         out, norms = [], []
         for k in range(len(schedules)):
-            sample, norm = compression_graph_inputs(traj, shape, plates[k], ratio[k], conditions)
+            sample, norm = compression_graph_inputs(
+                traj, shape, plates[k], ratio[k], conditions, edges
+            )
             out.append(compression.predict(sample))  # (N, T2, 3)
             norms.append(norm)
     else:

@@ -17,9 +17,9 @@ from datamodules.graphs import (
     MeshGraphDataModule,
     batch_graphs,
     graph_sample,
-    mesh_edges,
 )
 from fem.breasts.mesh import refine
+from fem.contract.quality import mesh_edges
 from fem.contract.trajectory import Trajectory
 from mammo_net.models import interpolate_steps, step_knots
 from mammo_net.module import MeshGraphModule, NetworkModule, SurrogateModule

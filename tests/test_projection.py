@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 import skfem
 
+from fem.contract import projection
 from fem.contract.plates import cc_plates, covered, penetration
 from fem.contract.projection import (
     ProjectionFailed,
@@ -50,6 +51,22 @@ def test_a_deliberately_bad_shape_becomes_valid_and_a_valid_one_stays(block):
     assert 0 < out.moved_rms_mm < 1.0  # less than the noise it undoes
     same = project_valid(t, p, p)
     assert same.sweeps == 0 and np.array_equal(same.points, p) and same.moved_max_mm == 0.0
+
+
+def test_a_folded_mesh_against_held_nodes_is_unfolded(block, monkeypatch):
+    """Noise of a whole edge with the bottom face held folds the mesh: the elements' averaged
+    requests cancel and plain sweeps stall; the smoothing step after a stall unfolds it."""
+    p, t = block
+    bottom = np.flatnonzero(p[:, 2] == 0)
+    held = (np.tile(bottom, 3), np.repeat(np.eye(3), len(bottom), axis=0))
+    folded = p + np.random.default_rng(0).normal(0, 2.0, p.shape)
+    settings = {"min_volume_ratio": 0.1, "volume_change": (-0.01, 0.01), "held": held}
+    out = project_valid(t, p, folded, **settings)
+    assert (signed_volume(out.points, t) / signed_volume(p, t)).min() >= 0.1
+    assert np.array_equal(out.points[bottom], p[bottom])
+    monkeypatch.setattr(projection, "STALL_SWEEPS", 10**9)  # no smoothing: the sweeps stall
+    with pytest.raises(ProjectionFailed, match=r"elements below volume ratio 0\.1"):
+        project_valid(t, p, folded, **settings)
 
 
 def test_lost_volume_is_given_back_within_the_range(block):

@@ -7,7 +7,11 @@ skin into a plate. `project_valid` moves the nodes as little as it can until eve
 holds, by position-based constraint projection (Jacobi iterations, as in position-based
 dynamics): each violated constraint ``C(x) >= 0`` asks its nodes for its minimum-norm linearised
 correction ``dx = -C grad C / |grad C|^2``; a node's requests are averaged; plate constraints are
-projected exactly, last in each sweep.
+projected exactly, last in each sweep. Where neighbouring elements' requests cancel (a fold
+of the mesh, typically against the held chest wall), the count of violated elements stops
+falling; after `STALL_SWEEPS` such sweeps their nodes take one Laplacian smoothing step (each
+towards the mean of its mesh neighbours, along the directions it may move in), which unfolds
+the patch, and the sweeps go on.
 
 * element volume: ``V_e(x) >= min_volume_ratio * V_e(reference)``, with
   ``dV/dx_a = (x_b - x_d) x (x_c - x_d) / 6``-type face normals (`volume_gradients`);
@@ -27,7 +31,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from fem.contract.plates import NORMAL, covered, penetration
-from fem.contract.quality import signed_volume
+from fem.contract.quality import mesh_edges, signed_volume
 
 #: Volume ratio asked of a violated element beyond ``min_volume_ratio`` (the linearised
 #: correction undershoots a cubic constraint; aiming past it converges in fewer sweeps).
@@ -35,6 +39,9 @@ OVERSHOOT = 1.5
 
 #: Distance from a plate within which a node counts as on it, mm.
 ON_PLATE = 1e-9
+
+#: Sweeps without fewer violated elements after which their nodes are smoothed (a stall).
+STALL_SWEEPS = 50
 
 
 @dataclass(frozen=True)
@@ -115,6 +122,9 @@ class Constraints:
         element asks of a vertex.
     free : (N, 3, 3) float64
         Per node, the projector onto the directions it may move in (`free_projectors`).
+    edges : (2, 2M) int64
+        The mesh's directed edges (`fem.contract.quality.mesh_edges`): the neighbours a
+        stalled patch is smoothed towards.
     skin : (S,) int64 or None
         Nodes held outside the plates.
     volume_change : (float, float) or None
@@ -133,6 +143,7 @@ class Constraints:
     target: NDArray[np.float64]
     size: NDArray[np.float64]
     free: NDArray[np.float64]
+    edges: NDArray[np.int64]
     skin: NDArray[np.int64] | None
     volume_change: tuple[float, float] | None
     tolerance_mm: float
@@ -195,6 +206,7 @@ def constraints(
         target=min_volume_ratio * volume,
         size=np.cbrt(6 * np.sqrt(2) * volume),
         free=free_projectors(len(reference), held),
+        edges=mesh_edges(cells),
         skin=None if skin is None else np.asarray(skin, np.int64),
         volume_change=volume_change,
         tolerance_mm=tolerance_mm,
@@ -221,7 +233,7 @@ def project(c: Constraints, points: NDArray, plates: NDArray | None = None) -> P
     if (plates is None) != (c.skin is None):
         raise ValueError("plates and skin go together")
     x = c.held(x0)  # held as in ``reference``
-    sweeps = 0
+    sweeps, fewest, stalled = 0, np.inf, 0
     for sweeps in range(c.max_sweeps + 1):
         volume, total, walls, deep = c.measure(x, plates)
         bad = volume < c.target
@@ -234,8 +246,13 @@ def project(c: Constraints, points: NDArray, plates: NDArray | None = None) -> P
                 f"{c.min_volume_ratio:g}, volume change {100 * total:+.2f} %, "
                 f"{deep:.3g} mm inside a plate"
             )
-        deficit = OVERSHOOT * c.target[bad] - volume[bad]
-        x = _element_sweep(x, c.cells, bad, deficit, c.size[bad], c.free, walls)
+        fewest, stalled = (bad.sum(), 0) if bad.sum() < fewest else (fewest, stalled + 1)
+        if stalled >= STALL_SWEEPS:  # requests that cancel: unfold the patch
+            x = _smoothing_step(x, c.edges, np.unique(c.cells[bad]), c.free)
+            fewest, stalled = np.inf, 0
+        else:
+            deficit = OVERSHOOT * c.target[bad] - volume[bad]
+            x = _element_sweep(x, c.cells, bad, deficit, c.size[bad], c.free, walls)
         if off_volume:
             lower, upper = c.volume_change
             margin = 0.1 * (upper - lower)  # aim inside: the linearised step lands near it
@@ -451,6 +468,19 @@ def _element_sweep(
     np.add.at(out, nodes.ravel(), step.reshape(-1, 3))
     count = np.bincount(nodes.ravel(), minlength=len(x))
     return x + out / np.maximum(count, 1)[:, None]
+
+
+def _smoothing_step(x: NDArray, edges: NDArray, nodes: NDArray, free: NDArray) -> NDArray:
+    """One Laplacian smoothing step of ``nodes`` (K,): each moves to the mean of its mesh
+    neighbours (``edges`` (2, 2M)), along the directions it may move in (``free``)."""
+    source, target = edges
+    mine = np.isin(target, nodes)
+    total = np.zeros_like(x)
+    np.add.at(total, target[mine], x[source[mine]])
+    count = np.bincount(target[mine], minlength=len(x))[nodes]
+    x = x.copy()
+    x[nodes] += np.einsum("nij,nj->ni", free[nodes], total[nodes] / count[:, None] - x[nodes])
+    return x
 
 
 def _whole_volume_step(

@@ -35,6 +35,16 @@ def signed_volume(points: NDArray, cells: NDArray) -> NDArray[np.float64]:
     return (a[0] * cross[0] + a[1] * cross[1] + a[2] * cross[2]) / 6.0
 
 
+def mesh_edges(cells: NDArray) -> NDArray[np.int64]:
+    """The directed edges of a tetrahedral mesh, both directions of each edge once, (2, 2 M)."""
+    cells = np.asarray(cells, np.int64)
+    pairs = np.sort(np.concatenate([cells[:, [i, j]] for i in range(4) for j in range(i + 1, 4)]))
+    n = int(cells.max(initial=0)) + 1
+    code = np.unique(pairs[:, 0] * n + pairs[:, 1])  # (M,) undirected, sorted as (low, high)
+    low, high = code // n, code % n
+    return np.stack([np.concatenate([low, high]), np.concatenate([high, low])])
+
+
 def face_normals(points: NDArray, cells: NDArray) -> NDArray[np.float64]:
     """Area-weighted outward normals of the four faces, face ``k`` opposite vertex ``k``.
 

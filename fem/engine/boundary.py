@@ -303,24 +303,28 @@ class PlateSchedule:
     upper_travel: NDArray = field(default_factory=lambda: np.zeros(3))
     extent: tuple[float, float] = (np.inf, np.inf)
 
-    def frames(self, s: float) -> NDArray[np.float64]:
-        """Both plates (2, 3, 3) at load factor ``s``."""
-        out = np.stack([self.lower, self.upper]).astype(float)
-        out[0, 0] += s * np.asarray(self.lower_travel)
-        out[1, 0] += s * np.asarray(self.upper_travel)
-        return out
+    def frames(self, s: float | NDArray) -> NDArray[np.float64]:
+        """Both plates (2, 3, 3) at load factor ``s``, or (T, 2, 3, 3) at each of ``s`` (T,)."""
+        s = np.asarray(s, float)
+        out = np.broadcast_to(np.stack([self.lower, self.upper]), (*s.shape, 2, 3, 3)).copy()
+        travel = np.stack([np.asarray(self.lower_travel), np.asarray(self.upper_travel)])
+        out[..., 0, :] += s[..., None, None] * travel  # (..., 2, 3) origins
+        return out.astype(float)
 
-    def gap(self, s: float) -> float:
-        """Distance between the plates along the lower plate's normal at ``s``, mm."""
-        lower, upper = self.frames(s)
-        return float((upper[0] - lower[0]) @ lower[1])
+    def gap(self, s: float | NDArray) -> float | NDArray[np.float64]:
+        """Distance between the plates along the lower plate's normal at ``s`` (or each of
+        ``s``), mm."""
+        plates = self.frames(s)
+        gap = np.einsum(
+            "...i,...i->...", plates[..., 1, 0, :] - plates[..., 0, 0, :], plates[..., 0, 1, :]
+        )
+        return float(gap) if gap.ndim == 0 else gap
 
     def recorded(self, n_steps: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """The plates (T, 2, 3, 3) and the compression ratio ``1 - gap(s) / gap(0)`` (T,) at
         the ``n_steps`` equally spaced recorded load factors ``k / n_steps``."""
         s = np.arange(1, n_steps + 1) / n_steps
-        plates = np.stack([self.frames(v) for v in s])
-        return plates, np.array([1.0 - self.gap(v) / self.gap(0.0) for v in s])
+        return self.frames(s), 1.0 - self.gap(s) / self.gap(0.0)
 
 
 def skin_span(traj: Trajectory, start: NDArray, normal: NDArray) -> tuple[float, float]:
