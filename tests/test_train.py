@@ -328,11 +328,14 @@ def test_graph_model_configs_instantiate(step, cv, tmp_path):
     assert [type(c).__name__ for c in callbacks] == ["ModelCheckpoint"]
 
 
-def test_train_the_graph_model(trajectory_folder, tmp_path):
+@pytest.mark.parametrize("trainer", [(), ("trainer=gpu", "trainer.accelerator=cpu")])
+def test_train_the_graph_model(trajectory_folder, tmp_path, trainer):
     """``python train.py experiment=mesh_gnn``: the graph model's table row and the validation
-    breasts' predictions in millimetres, as the Att-BLSTM's."""
+    breasts' predictions in millimetres, as the Att-BLSTM's; also with the GPU path's trainer
+    (bfloat16 autocast, here on the CPU)."""
     cfg = _cfg(
         "experiment=mesh_gnn",
+        *trainer,
         f"run_dir={tmp_path}",
         f"data.data_dir={trajectory_folder}",
         "data.val_fraction=0.25",
