@@ -68,6 +68,11 @@ def train(cfg: DictConfig) -> float:
     network = (
         time.perf_counter() - start - sum(c.results[f"{c.name}/fit_seconds"] for c in baselines)
     )
+    # the kept checkpoint's weights (the best epoch's, when a checkpoint callback monitors
+    # one) are the model of the score, the table and the predictions
+    best = trainer.checkpoint_callback.best_model_path if trainer.checkpoint_callback else ""
+    if best:
+        trainer.validate(model, dm, ckpt_path=best, weights_only=True, verbose=False)
     metrics = logged(trainer, baselines)
     if cfg.optimized_metric not in metrics:
         raise KeyError(
@@ -76,8 +81,7 @@ def train(cfg: DictConfig) -> float:
     score = metrics[cfg.optimized_metric]
     stage = "test" if cfg.test else "val"
     if cfg.test:
-        best = trainer.checkpoint_callback.best_model_path if trainer.checkpoint_callback else ""
-        trainer.test(model, dm, ckpt_path=best or None, weights_only=True)
+        trainer.test(model, dm, weights_only=True)
         metrics = logged(trainer, baselines)
     trained = trainer.global_step > 0  # False for baseline-only runs (trainer.max_epochs=0)
     if trained:

@@ -15,13 +15,14 @@ from omegaconf import OmegaConf
 
 import train
 from datamodules.features import FeatureSchema
+from datamodules.graphs import MeshGraphDataModule
 from datamodules.trajectories import TrajectoryDataModule
 from fem.contract.trajectory import Trajectory
 from mammo_net.baselines import forest_schema, load_xgboost, xgboost_schema
-from mammo_net.inference import load_predictions
+from mammo_net.inference import load_predictions, save_predictions
 from mammo_net.metrics import breast_rmse, comparison
 from mammo_net.models import PAPER_ACTIVATIONS
-from mammo_net.module import SurrogateModule, signature_defaults
+from mammo_net.module import NetworkModule, SurrogateModule, signature_defaults
 from mammo_net.report import write_report
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -345,6 +346,9 @@ def test_train_the_graph_model(trajectory_folder, tmp_path, trainer):
         "model.heads=1",
         "model.decoder_hidden=8",
         "trainer.max_epochs=2",
+        "model.lr=0.01",
+        "callbacks.model_checkpoint.mode=max",  # keeps the worse epoch: the first one
+        "test=false",  # as the cross-validation folds: the table of the validation breasts
         "~logger",
         "+trainer.enable_progress_bar=false",
         "report=false",
@@ -357,3 +361,13 @@ def test_train_the_graph_model(trajectory_folder, tmp_path, trainer):
     for name, p in predictions.items():
         truth = Trajectory.load(trajectory_folder / f"{name}.npz").compressed.transpose(1, 0, 2)
         assert p.shape == truth.shape and np.isfinite(p).all()
+    # the predictions are the kept checkpoint's (the best epoch's), not the last epoch's
+    best = tmp_path / "checkpoints" / "best.ckpt"
+    assert torch.load(best, weights_only=True)["epoch"] == 0
+    kept = NetworkModule.from_checkpoint(best)
+    dm = MeshGraphDataModule(str(trajectory_folder), "compression", val_fraction=0.25)
+    dm.prepare_data()
+    dm.setup()
+    again = load_predictions(save_predictions(tmp_path / "again.npz", kept.predictor(), dm.val))
+    for name, p in predictions.items():
+        np.testing.assert_allclose(again[name], p, atol=1e-4)
