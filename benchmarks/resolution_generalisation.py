@@ -1,0 +1,300 @@
+"""Does the graph surrogate generalise across mesh resolutions? The validation breasts of a
+run's split (fold 0 of the 10-fold cross-validation by default: 52 breasts) are remeshed from
+their segmentations at ``--factors`` times the cohort's element count (2x and 4x: about 4,500
+and 9,000 tetrahedra instead of 2,250) and simulated there with the cohort's own settings; the
+models trained at the native resolution then predict each breast at every resolution and are
+compared with the FE on the same mesh.
+
+    python benchmarks/resolution_generalisation.py --limit 2            # a quick check
+    nohup python benchmarks/resolution_generalisation.py --factors 2 4 \
+        --out results/resolution/mesh_gnn_fold0.json > resolution.log 2>&1 &
+    python benchmarks/resolution_generalisation.py --no-simulate        # evaluate what is done
+    python benchmarks/resolution_generalisation.py \
+        --unloaded outputs/.../unloaded/checkpoints/best.ckpt \
+        --compression outputs/.../compression/checkpoints/best.ckpt   # another model
+
+Breasts, meshes and FE: the cohort's generator, mesher and simulation are built from
+``<cohort>/cohort_config.json`` (the settings the cohort was made with), the mesher with
+``target_elements`` and ``tolerance`` times the factor. Each breast is meshed by the cohort's
+own `fem.cohort.make_breast` into ``<out-root>/<factor>x/<name>.npz`` and simulated by
+`fem.breasts.cohort_simulation.simulate_breast` into ``<out-root>/<factor>x/trajectories/``
+(``<name>.npz``, or ``<name>.failed.json`` when a step does not converge), both written
+atomically and skipped when present, so a killed run resumes; ``<out-root>/<factor>x/
+cohort_config.json`` records the settings and a folder made with others is refused
+(`fem.cohort.check_settings`). Breasts are done one after the other, every factor of a breast
+before the next breast, so a run stopped early still leaves breasts finished at every
+resolution. A breast whose meshing or FE fails is reported (name, factor, reason) and skipped.
+The native row is the cohort's own trajectories (``<cohort>/trajectories/``).
+
+Evaluation, on the breasts finished at every resolution only (paired): the two steps are
+judged separately, as the report does. The unloaded-state model predicts from the imaged mesh
+and is compared with the FE unloaded state; the compression model starts from the FE unloaded
+state at the FE's compressed thickness and is compared with the FE compression
+(`mammo_net.metrics.breast_rmse`: mean node RMSE over all recorded steps and at the last one,
+mm). The table gives the mean over breasts with its ratio to the native resolution (the target:
+at most 1.25x), and the inverted elements (signed volume <= 0) of the raw predictions over all
+recorded steps. FE time per breast is the simulation's own record (both steps; the native
+cohort's was measured when the cohort was built, possibly on another machine and load).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import time
+from pathlib import Path
+
+import numpy as np
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+from tqdm import tqdm
+
+from datamodules.graphs import MeshGraphDataModule
+from fem.breasts.cohort_simulation import simulate_breast
+from fem.breasts.mesh import Mesher
+from fem.breasts.phantom import PhantomGenerator
+from fem.cohort import check_settings, make_breast
+from fem.contract.quality import signed_volume
+from fem.contract.trajectory import Trajectory
+from fem.engine.simulation import Simulation
+from mammo_net.metrics import breast_rmse
+from mammo_net.predictor import Surrogate, load_surrogate, predict_breast
+
+RUNS = Path("results/cv/mesh_gnn")
+NATIVE = "native"
+#: The issue's target: the error at a finer resolution at most this times the native one.
+TARGET_RATIO = 1.25
+METRICS = (
+    ("compression", "all_steps"),
+    ("compression", "last_step"),
+    ("unloaded", "all_steps"),
+    ("unloaded", "last_step"),
+)
+
+
+def validation_names(run: Path) -> list[str]:
+    """The validation breasts of ``run``'s split (the graph data module it was trained with;
+    its caches are reused when current)."""
+    dm = MeshGraphDataModule.from_run(run)
+    dm.prepare_data()
+    dm.setup()
+    return [b.name for b in dm.val]
+
+
+def cohort_settings(cohort: Path, factor: int) -> DictConfig:
+    """The cohort's settings (``cohort_config.json``) with the mesher's element count and
+    tolerance times ``factor``, as the cohort command's config (``simulate=true``)."""
+    stored = json.loads((cohort / "cohort_config.json").read_text())
+    if stored.get("refine", 0) or stored.get("variation") is not None:
+        raise ValueError(
+            f"{cohort}: a refined or varied cohort; this benchmark remeshes plain ones"
+        )
+    mesher = dict(stored["mesher"])
+    mesher["target_elements"] = int(mesher["target_elements"] * factor)
+    mesher["tolerance"] = int(mesher["tolerance"] * factor)
+    return OmegaConf.create(
+        {
+            "generator": stored["generator"],
+            "mesher": mesher,
+            "simulation": stored["simulation"],
+            "simulate": True,
+            "refine": 0,
+            "variation": None,
+        }
+    )
+
+
+def fe_seconds(traj: Trajectory) -> float:
+    """Both FE steps' time as the simulation recorded it, s."""
+    return float(sum(traj.metadata["simulation"]["seconds"].values()))
+
+
+def run_breast(
+    generator: PhantomGenerator, mesher: Mesher, simulation: Simulation, name: str, folder: Path
+) -> str | None:
+    """Mesh and simulate breast ``name`` in ``folder`` unless done; the reason of a failure,
+    or None."""
+    mesh = folder / f"{name}.npz"
+    out = folder / "trajectories"
+    failed = out / f"{name}.failed.json"
+    if failed.exists():
+        row = json.loads(failed.read_text())
+        return f"FE ({row['step']}): {row['reason']}"
+    if (out / f"{name}.npz").exists():
+        return None
+    try:
+        if not mesh.exists():
+            make_breast(generator, mesher, int(name[1:5]), name[-1], folder, False)
+        row = simulate_breast(simulation, mesh, out)
+    except Exception as exc:  # a failed breast is reported, the benchmark goes on
+        return f"{'FE' if mesh.exists() else 'meshing'}: {type(exc).__name__}: {exc}"
+    if row["status"] != "ok":
+        return f"FE ({row['step']}): {row['reason']}"
+    return None
+
+
+def simulate_resolutions(
+    cohort: Path, out_root: Path, factors: list[int], names: list[str]
+) -> list[dict]:
+    """Mesh and simulate every breast at every factor (resumable); returns the failures."""
+    builds = {}
+    for factor in factors:
+        cfg = cohort_settings(cohort, factor)
+        folder = out_root / f"{factor}x"
+        folder.mkdir(parents=True, exist_ok=True)
+        check_settings(folder, cfg)
+        builds[factor] = (
+            instantiate(cfg.generator),
+            instantiate(cfg.mesher),
+            instantiate(cfg.simulation),
+            folder,
+        )
+    failures = []
+    with tqdm(total=len(names) * len(factors), unit="mesh", desc=f"FE -> {out_root}") as bar:
+        for name in names:
+            for factor in factors:
+                bar.set_postfix_str(f"{name} {factor}x")
+                reason = run_breast(*builds[factor][:3], name, builds[factor][3])
+                if reason is not None:
+                    failures.append({"breast": name, "factor": factor, "reason": reason})
+                    tqdm.write(f"FAILED {name} at {factor}x: {reason}")
+                bar.update()
+    return failures
+
+
+def evaluate(traj: Trajectory, unloaded: Surrogate, compression: Surrogate) -> dict:
+    """One breast's errors (mm), inverted elements of the raw predictions and times."""
+    thickness = float(traj.metadata["simulation"]["compressed_thickness_mm"])
+    start = time.perf_counter()
+    shapes = predict_breast(traj, unloaded, compression, [thickness])
+    predict_s = time.perf_counter() - start
+    from_fe = predict_breast(traj, None, compression, [thickness])  # the FE unloaded start
+    row: dict = {"tetrahedra": traj.n_cells, "nodes": traj.n_nodes, "fe_s": fe_seconds(traj)}
+    row["predict_s"] = predict_s
+    for step, predicted, truth in (
+        ("unloaded", shapes.unloaded, traj.unloaded),
+        ("compression", from_fe.compressed[0], traj.compressed),
+    ):
+        row[step] = breast_rmse(predicted.transpose(1, 0, 2), truth.transpose(1, 0, 2))
+        volume = signed_volume(predicted.astype(np.float64), traj.cells)  # (T, E)
+        row[step]["inverted"] = int((volume <= 0).sum())
+        row[step]["element_steps"] = int(volume.size)
+    return row
+
+
+def summary(rows: list[dict], resolutions: list[str]) -> list[dict]:
+    """Per resolution: breasts, tetrahedra, FE time, mean errors and their ratio to native,
+    inverted elements."""
+    native = {
+        m: np.mean([r[m[0]][m[1]] for r in rows if r["resolution"] == NATIVE]) for m in METRICS
+    }
+    out = []
+    for res in resolutions:
+        mine = [r for r in rows if r["resolution"] == res]
+        entry: dict = {
+            "resolution": res,
+            "breasts": len(mine),
+            "tetrahedra_median": statistics.median(r["tetrahedra"] for r in mine),
+            "tetrahedra_range": [
+                min(r["tetrahedra"] for r in mine),
+                max(r["tetrahedra"] for r in mine),
+            ],
+            "fe_s_median": statistics.median(r["fe_s"] for r in mine),
+            "predict_s_median": statistics.median(r["predict_s"] for r in mine),
+        }
+        for step, key in METRICS:
+            mean = float(np.mean([r[step][key] for r in mine]))
+            entry[f"{step}_{key}_mm"] = mean
+            entry[f"{step}_{key}_ratio"] = mean / native[(step, key)]
+        for step in ("compression", "unloaded"):
+            entry[f"{step}_inverted"] = sum(r[step]["inverted"] for r in mine)
+            entry[f"{step}_inverted_breasts"] = sum(r[step]["inverted"] > 0 for r in mine)
+            entry[f"{step}_element_steps"] = sum(r[step]["element_steps"] for r in mine)
+        out.append(entry)
+    return out
+
+
+def markdown(table: list[dict]) -> str:
+    """The summary as a Markdown table (error cells: mean over breasts, mm, and x native)."""
+    lines = [
+        "| resolution | breasts | tetrahedra: median (min-max) | FE s/breast (median)"
+        " | compression RMSE, all steps | compression, last step | unloaded RMSE, all steps"
+        " | unloaded, last step | inverted element-steps, compression / unloaded (breasts) |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for e in table:
+        errors = " | ".join(
+            f"{e[f'{s}_{k}_mm']:.3f} mm ({e[f'{s}_{k}_ratio']:.2f}x)" for s, k in METRICS
+        )
+        lo, hi = e["tetrahedra_range"]
+        lines.append(
+            f"| {e['resolution']} | {e['breasts']} | {e['tetrahedra_median']:.0f} ({lo}-{hi}) | "
+            f"{e['fe_s_median']:.1f} | {errors} | {e['compression_inverted']} / "
+            f"{e['unloaded_inverted']} ({e['compression_inverted_breasts']} / "
+            f"{e['unloaded_inverted_breasts']}) |"
+        )
+    worst = max(e[f"{s}_{k}_ratio"] for e in table for s, k in METRICS)
+    verdict = "met" if worst <= TARGET_RATIO else "missed"
+    lines += ["", f"Worst ratio to native: {worst:.2f}x (target <= {TARGET_RATIO}x: {verdict})."]
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument("--unloaded", type=Path, default=RUNS / "unloaded/fold0/checkpoints/best.ckpt")
+    ap.add_argument(
+        "--compression", type=Path, default=RUNS / "compression/fold0/checkpoints/best.ckpt"
+    )
+    ap.add_argument(
+        "--split-run", type=Path, default=RUNS / "compression/fold0",
+        help="train.py run folder whose validation breasts are used",
+    )  # fmt: skip
+    ap.add_argument("--cohort", type=Path, default=Path("data/cohort/full"))
+    ap.add_argument("--out-root", type=Path, default=Path("data/resolution"))
+    ap.add_argument("--factors", type=int, nargs="+", default=[2, 4])
+    ap.add_argument("--limit", type=int, default=None, help="the first breasts only")
+    ap.add_argument(
+        "--no-simulate", action="store_true",
+        help="evaluate the breasts already simulated; mesh and simulate nothing",
+    )  # fmt: skip
+    ap.add_argument("--out", type=Path, default=None, help="summary and per-breast rows as JSON")
+    args = ap.parse_args()
+    if any(f < 2 for f in args.factors):
+        raise SystemExit(f"--factors must be integers >= 2, got {args.factors}")
+    names = validation_names(args.split_run)[: args.limit]
+    failures = []
+    if not args.no_simulate:
+        failures = simulate_resolutions(args.cohort, args.out_root, args.factors, names)
+    folders = {NATIVE: args.cohort / "trajectories"}
+    folders |= {f"{f}x": args.out_root / f"{f}x" / "trajectories" for f in args.factors}
+    paired = [n for n in names if all((d / f"{n}.npz").exists() for d in folders.values())]
+    print(
+        f"{len(paired)} of {len(names)} breasts finished at every resolution ({', '.join(folders)})"
+    )
+    for f in failures:
+        print(f"failed: {f['breast']} at {f['factor']}x: {f['reason']}")
+    if not paired:
+        raise SystemExit("no breast finished at every resolution")
+    unloaded = load_surrogate(args.unloaded, "unloaded")
+    compression = load_surrogate(args.compression, "compression")
+    rows = []
+    for name in tqdm(paired, unit="breast", desc="predict"):
+        for res, folder in folders.items():
+            traj = Trajectory.load(folder / f"{name}.npz")
+            rows.append(
+                {"breast": name, "resolution": res, **evaluate(traj, unloaded, compression)}
+            )
+    table = summary(rows, list(folders))
+    print(markdown(table))
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        settings = {k: str(v) for k, v in vars(args).items()}
+        report = {"settings": settings, "summary": table, "failures": failures, "breasts": rows}
+        args.out.write_text(json.dumps(report, indent=1))
+
+
+if __name__ == "__main__":
+    main()
