@@ -13,7 +13,7 @@ import json
 import os
 import platform
 import time
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +26,9 @@ from fem.contract.atomic import atomic_path
 from fem.contract.trajectory import read_npz, reading_file
 
 PRECISIONS = ("32-true", "bf16-mixed")
+
+#: What a graph predictor takes: one breast's sample, or several as one batch.
+GraphSamples = Mapping[str, NDArray] | Sequence[Mapping[str, NDArray]]
 
 
 def check_precision(precision: str) -> None:
@@ -59,22 +62,31 @@ def network_predictor(
 
 def graph_predictor(
     model: torch.nn.Module, precision: str = "32-true"
-) -> Callable[[Mapping[str, NDArray]], NDArray[np.float32]]:
+) -> Callable[[GraphSamples], NDArray[np.float32] | list[NDArray[np.float32]]]:
     """``sample -> (N, T, 3)`` normalised predictions of a graph model on one breast's sample
     (`datamodules.graphs.graph_sample` or its ``*_graph_inputs``; targets ignored), all nodes
-    and steps in one pass. ``precision`` as `network_predictor`'s."""
+    and steps in one pass. A list of samples (the same breast at several thicknesses, or
+    several breasts with the same step count) goes through the model as one disconnected
+    graph, in one pass too, and gives the list of their (N_k, T, 3) predictions.
+    ``precision`` as `network_predictor`'s."""
     check_precision(precision)
 
-    def predict(sample: Mapping[str, NDArray]) -> NDArray[np.float32]:
+    def predict(samples: GraphSamples) -> NDArray[np.float32] | list[NDArray[np.float32]]:
         if model.training:
             model.eval()
+        one = isinstance(samples, Mapping)
+        inputs = [
+            {k: v for k, v in s.items() if k != "targets"} for s in ([samples] if one else samples)
+        ]
         device = next(model.parameters()).device
-        inputs = {k: v for k, v in sample.items() if k != "targets"}
-        batch = {k: v.to(device) for k, v in batch_graphs([inputs]).items()}
+        batch = {k: v.to(device) for k, v in batch_graphs(inputs).items()}
         bf16 = precision == "bf16-mixed"
         with torch.no_grad(), torch.autocast(device.type, torch.bfloat16, enabled=bf16):
-            out = model(batch).float()  # (T, N, 3)
-        return out.transpose(0, 1).cpu().numpy()
+            out = model(batch).float()  # (T, sum N_k, 3)
+        out = out.transpose(0, 1).cpu().numpy()  # (sum N_k, T, 3)
+        if one:
+            return out
+        return np.split(out, np.cumsum([len(s["nodes"]) for s in inputs])[:-1])
 
     return predict
 

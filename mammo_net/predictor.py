@@ -199,14 +199,13 @@ def predict_breast(
     ]
     plates = np.stack([p for p, _ in schedules])  # (K, T2, 2, 3, 3)
     ratio = np.stack([r for _, r in schedules])  # (K, T2)
-    if compression.graph:  # one pass per thickness
-        out, norms = [], []
-        for k in range(len(schedules)):
-            sample, norm = compression_graph_inputs(
-                traj, shape, plates[k], ratio[k], conditions, edges
-            )
-            out.append(compression.predict(sample))  # (N, T2, 3)
-            norms.append(norm)
+    if compression.graph:  # the K thicknesses as one batch of K graphs, one pass
+        inputs = [
+            compression_graph_inputs(traj, shape, plates[k], ratio[k], conditions, edges)
+            for k in range(len(schedules))
+        ]
+        norms = [norm for _, norm in inputs]
+        out = compression.predict([sample for sample, _ in inputs])  # K x (N, T2, 3)
     else:
         batch, norms = [], []
         for k in range(len(schedules)):
