@@ -19,6 +19,7 @@ import lightning as L
 from hydra.utils import instantiate, to_absolute_path
 from omegaconf import DictConfig
 
+from datamodules.trajectories import data_folders
 from fem.cohort import run_cohort
 from fem.contract.atomic import atomic_path, writable_folder
 from mammo_net.callbacks import TreeBaseline
@@ -30,9 +31,9 @@ from mammo_net.report import write_report
 
 def ensure_cohort(cfg: DictConfig) -> None:
     """Build the configured cohort, or finish a partial build (resumable: finished breasts are
-    skipped), when the trajectory folder ``data.data_dir`` is the cohort's."""
-    data_dir = Path(to_absolute_path(cfg.data.data_dir))
-    if data_dir == Path(to_absolute_path(cfg.cohort.out_dir)) / "trajectories":
+    skipped), when a trajectory folder of ``data.data_dir`` is the cohort's."""
+    folders = {Path(to_absolute_path(str(f))) for f in data_folders(cfg.data.data_dir)}
+    if Path(to_absolute_path(cfg.cohort.out_dir)) / "trajectories" in folders:
         run_cohort(cfg.cohort)
 
 
@@ -48,10 +49,11 @@ def train(cfg: DictConfig) -> float:
     """Fit (and test) on a composed config; returns the validation metric ``optimized_metric``.
 
     The run folder, the data and the model settings are checked before the cohort is built,
-    the features cached or anything written."""
+    the features cached or anything written. The data folders are opened relative to the
+    folder train.py starts in (``hydra.job.chdir`` is false) and recorded as written."""
     writable_folder(cfg.run_dir)
     L.seed_everything(cfg.seed, workers=True)
-    dm = instantiate(cfg.data, data_dir=to_absolute_path(cfg.data.data_dir))
+    dm = instantiate(cfg.data)
     model: NetworkModule = instantiate(cfg.model)
     model.check_data_step(dm.hparams.step)
     ensure_cohort(cfg)

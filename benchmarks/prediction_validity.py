@@ -102,7 +102,7 @@ def main() -> None:
             names = sorted(predictions)[: args.limit]
             model_rows = []
             for name in names:
-                traj = Trajectory.load(dm.data_dir / f"{name}.npz")
+                traj = Trajectory.load(dm.source(name))
                 truth = traj.unloaded if step == "unloaded" else traj.compressed
                 shapes = shapes_of(traj, step, predictions[name].transpose(1, 0, 2))
                 start = time.perf_counter()

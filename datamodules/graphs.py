@@ -14,7 +14,8 @@ larger graph.
 
 The per-breast samples are cached as ``<cache_dir>/graph_<step>/P0007_L.graph.npz`` with the
 ``.json`` of the feature cache (patient, site, node and step counts, normalisation, the
-source's stamp), written atomically and rebuilt when the source changes.
+simulation's conditions, the source's stamp), written atomically and rebuilt when the source
+changes.
 """
 
 from __future__ import annotations
@@ -32,11 +33,12 @@ from torch.utils.data import DataLoader, Dataset
 
 from datamodules.features import LATERALITY, FeatureSchema, Normalization, upper_contact
 from datamodules.trajectories import (
+    TISSUES,
     Breast,
     TrajectoryDataModule,
-    cache_is_current,
+    cache_meta,
     node_offsets,
-    source_stamp,
+    recorded_conditions,
 )
 from fem.contract.atomic import atomic_path
 from fem.contract.plates import ORIGIN, plate_basis
@@ -147,15 +149,17 @@ class Conditions:
             The metadata lack the simulation's settings; the message names the source and
             the field.
         """
-        sim = metadata.get("simulation")
-        try:
-            young = {name: float(sim["materials"][name]["young"]) for name in REFERENCE_YOUNG}
-            return cls(young, float(sim["friction"]), str(sim["view"]), float(sim["angle"]))
-        except (KeyError, TypeError, ValueError) as exc:
+        raw = recorded_conditions(metadata)
+        if raw is None:
             raise ValueError(
                 f"{source}: metadata field 'simulation' must hold materials (young of "
-                f"{', '.join(REFERENCE_YOUNG)}), friction, view and angle ({exc!r})"
-            ) from exc
+                f"{', '.join(TISSUES)}), friction, view and angle"
+            )
+        young = {t: raw[f"young_{t}"] for t in TISSUES}
+        try:
+            return cls(young, raw["friction"], raw["view"], raw["angle"])
+        except ValueError as exc:
+            raise ValueError(f"{source}: metadata field 'simulation': {exc}") from exc
 
     def vector(self) -> NDArray[np.float32]:
         """`CONDITION_FEATURES`, shape (7,)."""
@@ -336,16 +340,8 @@ def cache_graph(source: Path, stem: Path, step: str) -> None:
     sample, norm = graph_sample(traj, step)
     with atomic_path(stem.with_suffix(".graph.npz")) as tmp, open(tmp, "wb") as f:
         np.savez(f, **sample)
-    meta = {
-        **norm.to_json(),
-        "patient": int(traj.metadata.get("patient", -1)),
-        "site": str(traj.metadata.get("site", "")),
-        "n_nodes": traj.n_nodes,
-        "n_steps": len(sample["targets"]),
-        "source_stamp": source_stamp(source),
-    }
     with atomic_path(stem.with_suffix(".json")) as tmp:
-        tmp.write_text(json.dumps(meta))
+        tmp.write_text(json.dumps(cache_meta(traj, source, norm, len(sample["targets"]))))
 
 
 @dataclass(frozen=True)
@@ -431,41 +427,28 @@ class MeshGraphDataModule(TrajectoryDataModule):
     """Whole-breast graphs of one simulation step, split by patient exactly as
     `TrajectoryDataModule` splits (same arguments; ``batch_size`` counts breasts).
 
-    The cache defaults to ``<data_dir>/cache`` as the sequence caches do, in the folder
-    ``graph_<step>`` beside theirs.
+    The caches lie where the sequence caches do (``<data_dir>/cache`` by default), in the
+    folder ``graph_<step>`` beside theirs.
     """
+
+    cache_last = ".json"
+    breast_type = GraphBreast
 
     def __init__(self, *args, batch_size: int = 4, **kwargs) -> None:
         super().__init__(*args, batch_size=batch_size, **kwargs)
 
     @property
-    def folder(self) -> Path:
-        return self.cache / f"graph_{self.hparams.step}"
+    def cache_kind(self) -> str:
+        return f"graph_{self.hparams.step}"
 
-    def prepare_data(self) -> None:
-        """Cache the graph of every breast not cached yet or changed since."""
-        for source in self.sources():
-            stem = self.folder / source.stem
-            if not cache_is_current(source, stem, last=".json"):
-                cache_graph(source, stem, self.hparams.step)
-
-    def breasts(self) -> list[GraphBreast]:
-        result = []
-        for source in self.sources():
-            meta = json.loads((self.folder / source.stem).with_suffix(".json").read_text())
-            result.append(
-                GraphBreast(source.stem, meta["patient"], meta["site"], self.folder / source.stem)
-            )
-        return result
+    def write_cache(self, source: Path, stem: Path) -> None:
+        """Cache one breast's graph (`cache_graph`)."""
+        cache_graph(source, stem, self.hparams.step)
 
     def schema(self) -> FeatureSchema:
         """The inputs of graph models trained here (`graph_inputs`), with the longest
         trajectory's step count."""
-        n_steps = max(
-            json.loads((self.folder / s.stem).with_suffix(".json").read_text())["n_steps"]
-            for s in self.sources()
-        )
-        return FeatureSchema(self.hparams.step, graph_inputs(self.hparams.step), n_steps)
+        return FeatureSchema(self.hparams.step, graph_inputs(self.hparams.step), self.max_steps())
 
     def _loader(self, breasts: list[GraphBreast], shuffle: bool) -> DataLoader:
         return DataLoader(

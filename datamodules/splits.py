@@ -1,12 +1,17 @@
-"""Patient-level splits: the paper's one-fold split and k-fold cross-validation.
+"""Patient-level splits: the paper's one-fold split and k-fold cross-validation, and the
+training set's bounds on the simulation conditions.
 
-Both breasts of a patient always stay on one side. Patients are identified by an integer
-and carry a site label; splits are deterministic functions of the patient list and a seed.
+Both breasts of a patient (in every view) always stay on one side. Patients are identified by
+an integer and carry a site label; splits are deterministic functions of the patient list and
+a seed. Bounds on the conditions (``data.train_conditions``) hold training breasts out of
+ranges of stiffness, friction or mlo angle (`check_bounds`, `within_bounds`); they never move
+a patient between the sides.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import math
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -74,3 +79,62 @@ def _check(patients: NDArray, sites: NDArray) -> None:
         raise ValueError(f"{len(patients)} patients but {len(sites)} site labels")
     if len(np.unique(patients)) != len(patients):
         raise ValueError("patient ids must be unique (one entry per patient, not per breast)")
+
+
+#: The conditions ``data.train_conditions`` may bound (the names of
+#: `datamodules.trajectories.recorded_conditions`): Young's moduli in Pa, the friction
+#: coefficient, the mlo plates' angle in degrees (a cc breast satisfies any angle bounds).
+BOUNDED_CONDITIONS = (
+    "young_fat",
+    "young_gland",
+    "young_muscle",
+    "young_skin",
+    "friction",
+    "angle",
+)
+
+
+def check_bounds(
+    bounds: Mapping[str, Sequence[float]] | None,
+) -> dict[str, tuple[float, float]] | None:
+    """``data.train_conditions`` checked: condition name -> (low, high), or None for no bounds.
+
+    Raises
+    ------
+    ValueError
+        An unknown condition name, or bounds that are not two finite numbers with
+        ``low <= high``; the message names ``data.train_conditions.<name>``.
+    """
+    if bounds is None:
+        return None
+    if not isinstance(bounds, Mapping):
+        raise ValueError(
+            f"data.train_conditions must map condition names to [low, high], got {bounds!r}"
+        )
+    checked = {}
+    for name, pair in bounds.items():
+        field = f"data.train_conditions.{name}"
+        if name not in BOUNDED_CONDITIONS:
+            raise ValueError(f"{field}: unknown condition; one of {', '.join(BOUNDED_CONDITIONS)}")
+        numbers = list(pair) if isinstance(pair, Sequence) and not isinstance(pair, str) else [pair]
+        if not (
+            len(numbers) == 2
+            and all(isinstance(v, int | float) and not isinstance(v, bool) for v in numbers)
+            and all(math.isfinite(v) for v in numbers)
+            and numbers[0] <= numbers[1]
+        ):
+            raise ValueError(f"{field} must be [low, high], finite with low <= high, got {pair!r}")
+        checked[str(name)] = (float(numbers[0]), float(numbers[1]))
+    return checked
+
+
+def within_bounds(
+    conditions: Mapping[str, float | str], bounds: Mapping[str, tuple[float, float]]
+) -> bool:
+    """Whether a breast's conditions (`datamodules.trajectories.recorded_conditions`) lie
+    inside every bound (`check_bounds`), bounds included; the angle binds mlo breasts only."""
+    return all(
+        low <= conditions[name] <= high
+        for name, (low, high) in bounds.items()
+        if name != "angle" or conditions["view"] == "mlo"
+    )

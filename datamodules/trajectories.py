@@ -1,22 +1,27 @@
-"""A LightningDataModule over a folder of simulated trajectories (the FE cohort's output).
+"""A LightningDataModule over folders of simulated trajectories (the FE cohort's output).
 
     dm = TrajectoryDataModule("data/cohort/full/trajectories", step="compression")
+    dm = TrajectoryDataModule(["data/cohort/v2/trajectories", "data/cohort/v2/trajectories_mlo"])
 
 `prepare_data` turns every ``P0007_L.npz`` into a per-breast feature cache
 (``<cache_dir>/<step>/P0007_L.features.npy`` (N, T, F) float32, ``.targets.npy`` (N, T, 3)
-float32 and ``.json`` with the normalisation and the source file's size and modification time),
-written atomically and skipped while the source is unchanged (a re-simulated cohort is
-re-cached, never read from its old features).
+float32 and ``.json`` with the normalisation, the simulation's conditions and the source file's
+size and modification time), written atomically and skipped while the source is unchanged (a
+re-simulated cohort is re-cached, never read from its old features).
 Every dataset then reads the caches memory-mapped, so the cohort is never held in RAM twice:
 the sequence model gets one node's step sequence per item, ``(T, F) -> (T, 3)``, and the tree
 models get flat ``(node, step)`` rows (`TrajectoryDataModule.rows`) from the same split.
-Splits are by patient (`datamodules.splits`): the paper's one-fold split or k-fold.
+Splits are by patient (`datamodules.splits`): the paper's one-fold split or k-fold. Several
+trajectory folders (the cohort v2's views: the same breasts in ``trajectories/`` and
+``trajectories_mlo/``) make one data set whose breasts are named ``P0007_L@<folder name>``;
+a patient's breasts of every folder stay on one side of the split.
 """
 
 from __future__ import annotations
 
 import json
-from collections.abc import Iterator
+import os
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -34,22 +39,30 @@ from datamodules.features import (
     compression_features,
     unloaded_features,
 )
-from datamodules.splits import k_folds, one_fold_split
+from datamodules.splits import check_bounds, k_folds, one_fold_split, within_bounds
 from fem.contract.atomic import atomic_path
 from fem.contract.trajectory import Trajectory
 
 STEPS = {"unloaded": unloaded_features, "compression": compression_features}
 
-#: The settings `TrajectoryDataModule.from_run` reads from a run folder, with their types.
+#: The settings `TrajectoryDataModule.from_run` reads from a run folder, with their types
+#: (a list: of str).
 RUN_SETTINGS: dict[str, tuple[type, ...]] = {
-    "data_dir": (str,),
+    "data_dir": (str, list),
     "step": (str,),
     "split": (str, type(None)),
     "fold": (int, type(None)),
     "n_folds": (int,),
     "val_fraction": (float, int),
     "seed": (int,),
+    "train_conditions": (dict, type(None)),
 }
+
+#: The tissues whose Young's moduli a simulation records (``metadata["simulation"]``).
+TISSUES = ("fat", "gland", "muscle", "skin")
+
+#: A trajectory folder given as data: one path, or several.
+DataDir = str | os.PathLike | Sequence[str | os.PathLike]
 
 
 @dataclass(frozen=True)
@@ -73,6 +86,61 @@ class Breast:
         meta = json.loads(self.stem.with_suffix(".json").read_text())
         return Normalization.from_json(meta)
 
+    def conditions(self) -> dict[str, float | str] | None:
+        """The simulation's conditions (`recorded_conditions`), None if not recorded."""
+        return json.loads(self.stem.with_suffix(".json").read_text())["conditions"]
+
+
+@dataclass(frozen=True)
+class Source:
+    """One trajectory file of a data module: its breast's name and cache file stem."""
+
+    name: str
+    path: Path
+    stem: Path
+
+
+def data_folders(data_dir: DataDir) -> list[Path]:
+    """The trajectory folders of ``data.data_dir``: one folder, or a list of folders with
+    distinct names (the names tell their breasts apart).
+
+    Raises
+    ------
+    ValueError
+        No folder, or several folders of the same name.
+    """
+    if isinstance(data_dir, str | os.PathLike):
+        return [Path(data_dir)]
+    folders = [Path(d) for d in data_dir]
+    if not folders:
+        raise ValueError("data.data_dir: an empty list of trajectory folders")
+    names = [f.name for f in folders]
+    shared = sorted({n for n in names if names.count(n) > 1})
+    if len(folders) > 1 and shared:
+        raise ValueError(
+            f"data.data_dir: folders of the same name {shared} in {[str(f) for f in folders]}: "
+            "several folders name their breasts and caches by the folder name, so the names "
+            "must differ"
+        )
+    return folders
+
+
+def recorded_conditions(metadata: Mapping) -> dict[str, float | str] | None:
+    """The conditions a trajectory was simulated under (``metadata["simulation"]``) as plain
+    values: ``young_<tissue>`` (Pa, `TISSUES`), ``friction``, ``view`` and ``angle`` (degrees);
+    None when the metadata do not record them all."""
+    sim = metadata.get("simulation")
+    try:
+        young = {f"young_{t}": float(sim["materials"][t]["young"]) for t in TISSUES}
+        return {
+            **young,
+            "friction": float(sim["friction"]),
+            "view": str(sim["view"]),
+            "angle": float(sim["angle"]),
+        }
+    except (KeyError, TypeError, ValueError):
+        return None
+
 
 def source_stamp(source: Path) -> list[int]:
     """The trajectory file's size (bytes) and modification time (ns): a cache of another
@@ -82,12 +150,26 @@ def source_stamp(source: Path) -> list[int]:
 
 
 def cache_is_current(source: Path, stem: Path, last: str = ".targets.npy") -> bool:
-    """Whether ``stem``'s cache is complete (its file ``last`` is written last) and of
-    ``source`` as it is."""
+    """Whether ``stem``'s cache is complete (its file ``last`` is written last), of ``source``
+    as it is, and records the conditions (caches written before they were are rebuilt)."""
     if not stem.with_suffix(last).exists():
         return False
     meta = json.loads(stem.with_suffix(".json").read_text())
-    return meta.get("source_stamp") == source_stamp(source)
+    return meta.get("source_stamp") == source_stamp(source) and "conditions" in meta
+
+
+def cache_meta(traj: Trajectory, source: Path, norm: Normalization, n_steps: int) -> dict:
+    """The ``.json`` of a breast's cache: normalisation, patient, site, node and step counts,
+    the simulation's conditions and the source's stamp."""
+    return {
+        **norm.to_json(),
+        "patient": int(traj.metadata.get("patient", -1)),
+        "site": str(traj.metadata.get("site", "")),
+        "n_nodes": traj.n_nodes,
+        "n_steps": n_steps,
+        "conditions": recorded_conditions(traj.metadata),
+        "source_stamp": source_stamp(source),
+    }
 
 
 def cache_breast(source: Path, stem: Path, step: str) -> None:
@@ -95,14 +177,7 @@ def cache_breast(source: Path, stem: Path, step: str) -> None:
     traj = Trajectory.load(source)
     traj.metadata.setdefault("source", str(source))
     features, targets, norm = STEPS[step](traj)
-    meta = {
-        **norm.to_json(),
-        "patient": int(traj.metadata.get("patient", -1)),
-        "site": str(traj.metadata.get("site", "")),
-        "n_nodes": traj.n_nodes,
-        "n_steps": len(targets),
-        "source_stamp": source_stamp(source),
-    }
+    meta = cache_meta(traj, source, norm, len(targets))
     with atomic_path(stem.with_suffix(".features.npy")) as tmp:
         np.save(tmp, np.ascontiguousarray(features.transpose(1, 0, 2)))
     with atomic_path(stem.with_suffix(".json")) as tmp:
@@ -152,8 +227,10 @@ class TrajectoryDataModule(L.LightningDataModule):
 
     Parameters
     ----------
-    data_dir : str
-        Folder of simulated ``P*_[LR].npz`` trajectories.
+    data_dir : str or list of str
+        Folder of simulated ``P*_[LR].npz`` trajectories, or several folders of distinct
+        names (the views of the cohort v2): their breasts are named ``<file stem>@<folder
+        name>`` (``P0007_L@trajectories_mlo``), one folder's by the file stem.
     step : {"unloaded", "compression"}
         Which simulation step the models learn.
     split : {"one_fold", "k_fold"}, optional
@@ -167,12 +244,24 @@ class TrajectoryDataModule(L.LightningDataModule):
     batch_size, num_workers
         Of the sequence loaders.
     cache_dir : str, optional
-        Feature caches; default ``<data_dir>/cache``.
+        Feature caches; default ``<data_dir>/cache`` (each folder's own); with several
+        folders ``<cache_dir>/<folder name>``.
+    train_conditions : mapping of str to [low, high], optional
+        Bounds on the simulation conditions of the training breasts
+        (`datamodules.splits.BOUNDED_CONDITIONS`: ``young_fat``, ``young_gland``,
+        ``young_muscle``, ``young_skin`` in Pa, ``friction``, ``angle`` in degrees, mlo breasts
+        only), bounds included: a training breast outside one is left out of training; the
+        validation breasts are all kept, in and out of the bounds.
     """
+
+    #: A breast's cache is complete once its file of this suffix exists (written last).
+    cache_last = ".targets.npy"
+    #: The breasts read from the caches.
+    breast_type: type[Breast] = Breast
 
     def __init__(
         self,
-        data_dir: str,
+        data_dir: DataDir,
         step: str = "compression",
         split: str | None = None,
         fold: int | None = None,
@@ -182,6 +271,7 @@ class TrajectoryDataModule(L.LightningDataModule):
         batch_size: int = 256,
         num_workers: int = 0,
         cache_dir: str | None = None,
+        train_conditions: Mapping[str, Sequence[float]] | None = None,
     ) -> None:
         super().__init__()
         if step not in STEPS:
@@ -200,10 +290,15 @@ class TrajectoryDataModule(L.LightningDataModule):
             raise ValueError(
                 f"data.fold={fold} selects a k-fold validation fold; the one-fold split has none"
             )
-        # the resolved values, stated: a subclass's own arguments are not collected
+        folders = data_folders(data_dir)
+        self.bounds = check_bounds(train_conditions)
+        # the resolved values, stated, the folders as given (a relative folder stays relative
+        # in checkpoints); a subclass's own arguments are not collected
         self.save_hyperparameters(
             {
-                "data_dir": data_dir,
+                "data_dir": os.fspath(data_dir)
+                if isinstance(data_dir, str | os.PathLike)
+                else [os.fspath(d) for d in data_dir],
                 "step": step,
                 "split": split,
                 "fold": fold,
@@ -213,20 +308,28 @@ class TrajectoryDataModule(L.LightningDataModule):
                 "batch_size": batch_size,
                 "num_workers": num_workers,
                 "cache_dir": cache_dir,
+                "train_conditions": None
+                if self.bounds is None
+                else {name: list(pair) for name, pair in self.bounds.items()},
             }
         )
-        self.data_dir = Path(data_dir)
-        self.cache = Path(cache_dir) if cache_dir else self.data_dir / "cache"
+        self.data_dirs = [f.absolute() for f in folders]
+        if not cache_dir:
+            self.caches = [f / "cache" for f in self.data_dirs]
+        elif len(folders) > 1:
+            self.caches = [Path(cache_dir).absolute() / f.name for f in self.data_dirs]
+        else:
+            self.caches = [Path(cache_dir).absolute()]
         self.feature_names = STEP_FEATURES[step]
         self.train: list[Breast] = []
         self.val: list[Breast] = []
 
     @classmethod
-    def from_run(cls, run: str | Path, data_dir: str | Path | None = None) -> TrajectoryDataModule:
+    def from_run(cls, run: str | Path, data_dir: DataDir | None = None) -> TrajectoryDataModule:
         """The data module a ``train.py`` run folder was trained with, rebuilt from the plain
         values of its ``.hydra/config.yaml`` (`RUN_SETTINGS`; other keys, ``_target_``
         included, are ignored): a run folder may come from anyone, so nothing named in it is
-        ever instantiated. ``data_dir`` replaces the run's own trajectory folder.
+        ever instantiated. ``data_dir`` replaces the run's own trajectory folder(s).
 
         Raises
         ------
@@ -241,44 +344,95 @@ class TrajectoryDataModule(L.LightningDataModule):
             raise FileNotFoundError(f"{config}: not found; is {run} a train.py run folder?")
         try:
             data = OmegaConf.load(config).data
-            values = {k: data[k] for k in RUN_SETTINGS if k in data}
+            values = {
+                k: OmegaConf.to_container(data[k], resolve=True)
+                if OmegaConf.is_config(data[k])
+                else data[k]
+                for k in RUN_SETTINGS
+                if k in data
+            }
         except Exception as exc:  # YAML, a missing data section, unresolvable interpolations
             raise ValueError(f"{config}: unreadable data settings ({exc})") from exc
         for key, types in RUN_SETTINGS.items():
-            if key in values and not isinstance(values[key], types):
-                raise ValueError(
-                    f"{config}: field 'data.{key}' must be {' or '.join(t.__name__ for t in types)}, "
-                    f"got {values[key]!r}"
-                )
+            value = values.get(key)
+            if key in values and not (
+                isinstance(value, types)
+                and (not isinstance(value, list) or all(isinstance(v, str) for v in value))
+            ):
+                names = " or ".join("list of str" if t is list else t.__name__ for t in types)
+                raise ValueError(f"{config}: field 'data.{key}' must be {names}, got {value!r}")
         if data_dir is not None:
-            values["data_dir"] = str(data_dir)
+            values["data_dir"] = data_dir
         try:
             return cls(**values)
         except ValueError as exc:  # a value the constructor refuses, e.g. data.fold
             raise ValueError(f"{config}: {exc}") from exc
 
-    def sources(self) -> list[Path]:
-        files = sorted(self.data_dir.glob("P*_[LR].npz"))
-        if not files:
-            raise FileNotFoundError(f"{self.data_dir}: no simulated trajectories (P*_[LR].npz)")
-        return files
+    @property
+    def cache_kind(self) -> str:
+        """The folder of this module's caches in each cache folder."""
+        return self.hparams.step
+
+    def write_cache(self, source: Path, stem: Path) -> None:
+        """Cache one breast (`cache_breast`)."""
+        cache_breast(source, stem, self.hparams.step)
+
+    def sources(self) -> list[Source]:
+        """Every trajectory file of the data folders, with its breast's name and cache stem.
+
+        Raises
+        ------
+        FileNotFoundError
+            A folder has no trajectory; the message names it.
+        """
+        several = len(self.data_dirs) > 1
+        result = []
+        for folder, cache in zip(self.data_dirs, self.caches, strict=True):
+            files = sorted(folder.glob("P*_[LR].npz"))
+            if not files:
+                raise FileNotFoundError(f"{folder}: no simulated trajectories (P*_[LR].npz)")
+            result += [
+                Source(
+                    f"{f.stem}@{folder.name}" if several else f.stem,
+                    f,
+                    cache / self.cache_kind / f.stem,
+                )
+                for f in files
+            ]
+        return result
+
+    def source(self, name: str) -> Path:
+        """The trajectory file of breast ``name`` (named as by `sources`; nothing is read).
+
+        Raises
+        ------
+        ValueError
+            With several folders, ``name`` names none of them.
+        """
+        if len(self.data_dirs) == 1:
+            return self.data_dirs[0] / f"{name}.npz"
+        stem, _, folder = name.partition("@")
+        for d in self.data_dirs:
+            if d.name == folder:
+                return d / f"{stem}.npz"
+        raise ValueError(
+            f"breast {name!r}: none of the data folders {[str(d) for d in self.data_dirs]} "
+            "(breasts of several folders are named <file stem>@<folder name>)"
+        )
 
     def prepare_data(self) -> None:
-        """Cache the features of every breast not cached yet or changed since
-        (`cache_is_current`); the cache folder is created by the first breast written, so a
-        folder without (readable) trajectories gets none."""
-        out = self.cache / self.hparams.step
-        for source in self.sources():
-            stem = out / source.stem
-            if not cache_is_current(source, stem):
-                cache_breast(source, stem, self.hparams.step)
+        """Cache every breast not cached yet or changed since (`cache_is_current`); a cache
+        folder is created by the first breast written, so a folder without (readable)
+        trajectories gets none."""
+        for s in self.sources():
+            if not cache_is_current(s.path, s.stem, self.cache_last):
+                self.write_cache(s.path, s.stem)
 
     def breasts(self) -> list[Breast]:
-        out = self.cache / self.hparams.step
         result = []
-        for source in self.sources():
-            meta = json.loads((out / source.stem).with_suffix(".json").read_text())
-            result.append(Breast(source.stem, meta["patient"], meta["site"], out / source.stem))
+        for s in self.sources():
+            meta = json.loads(s.stem.with_suffix(".json").read_text())
+            result.append(self.breast_type(s.name, meta["patient"], meta["site"], s.stem))
         return result
 
     def setup(self, stage: str | None = None) -> None:
@@ -294,11 +448,36 @@ class TrajectoryDataModule(L.LightningDataModule):
             val = patients[fold == (hp.fold or 0)]
         self.val = [b for b in breasts if b.patient in set(val.tolist())]
         self.train = [b for b in breasts if b.patient not in set(val.tolist())]
+        folders = ", ".join(map(str, self.data_dirs))
         if not self.train or not self.val:
             raise ValueError(
-                f"{self.data_dir}: {len(patients)} patients give an empty "
+                f"{folders}: {len(patients)} patients give an empty "
                 f"{'training' if not self.train else 'validation'} split ({hp.split})"
             )
+        if self.bounds is not None:
+            self.train = [b for b in self.train if within_bounds(self.conditions(b), self.bounds)]
+            if not self.train:
+                raise ValueError(
+                    f"data.train_conditions={hp.train_conditions}: no training breast of "
+                    f"{folders} lies within the bounds ({hp.split}, fold {hp.fold})"
+                )
+
+    def conditions(self, breast: Breast) -> dict[str, float | str]:
+        """A breast's recorded simulation conditions (`recorded_conditions`).
+
+        Raises
+        ------
+        ValueError
+            Its trajectory does not record them; the message names the file.
+        """
+        conditions = breast.conditions()
+        if conditions is None:
+            raise ValueError(
+                f"{self.source(breast.name)}: metadata field 'simulation' must hold materials "
+                f"(young of {', '.join(TISSUES)}), friction, view and angle for "
+                "data.train_conditions"
+            )
+        return conditions
 
     def train_dataloader(self) -> DataLoader:
         return DataLoader(
@@ -318,14 +497,15 @@ class TrajectoryDataModule(L.LightningDataModule):
     def test_dataloader(self) -> DataLoader:
         return self.val_dataloader()
 
+    def max_steps(self) -> int:
+        """The longest cached trajectory's step count."""
+        return max(
+            json.loads(s.stem.with_suffix(".json").read_text())["n_steps"] for s in self.sources()
+        )
+
     def schema(self) -> FeatureSchema:
         """The feature schema of models trained here (the longest trajectory's step count)."""
-        out = self.cache / self.hparams.step
-        n_steps = max(
-            json.loads((out / s.stem).with_suffix(".json").read_text())["n_steps"]
-            for s in self.sources()
-        )
-        return FeatureSchema.of(self.hparams.step, n_steps)
+        return FeatureSchema.of(self.hparams.step, self.max_steps())
 
     def feature_statistics(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Mean and standard deviation (F,) of each feature over the training rows, streamed

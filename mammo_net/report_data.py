@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from datamodules.trajectories import TrajectoryDataModule
+from datamodules.trajectories import DataDir, TrajectoryDataModule, recorded_conditions
 from fem.contract.trajectory import TISSUE_BIT, NodeFlag, Tissue, Trajectory
 from mammo_net import evaluation as ev
 from mammo_net.inference import load_prediction_seconds, load_predictions
@@ -36,6 +36,7 @@ class BreastTruth:
     volume_cm3: float
     fe_seconds: float  # the FE solver's wall time for this step, s
     path: Path
+    conditions: dict[str, float | str] | None  # the simulation's, if recorded
 
 
 @dataclass
@@ -66,15 +67,16 @@ class Evaluation:
         return f"{self.split}_{self.step}".replace(" ", "_").replace("-", "_")
 
 
-def load_truth(path: Path, step: str) -> BreastTruth:
-    """The FE positions of ``step`` and the node facts of the trajectory file ``path``."""
+def load_truth(path: Path, step: str, name: str) -> BreastTruth:
+    """The FE positions of ``step`` and the node facts of the trajectory file ``path`` of breast
+    ``name``."""
     traj = Trajectory.load(path)
     positions = traj.compressed if step == "compression" else traj.unloaded
     if not len(positions):
         raise ValueError(f"{path}: field {step!r} has no simulated steps")
     seconds = traj.metadata.get("simulation", {}).get("seconds", {}).get(step, float("nan"))
     return BreastTruth(
-        name=path.stem,
+        name=name,
         positions=positions.transpose(1, 0, 2),
         tissue_code=traj.node_tissue_code,
         surface=(traj.node_flags & NodeFlag.SKIN) > 0,
@@ -82,18 +84,23 @@ def load_truth(path: Path, step: str) -> BreastTruth:
         volume_cm3=float(traj.metadata.get("breast_volume_cm3", float("nan"))),
         fe_seconds=float(seconds),
         path=path,
+        conditions=recorded_conditions(traj.metadata),
     )
 
 
-def run_settings(run: Path) -> tuple[str, str, Path]:
-    """(split label, step, trajectory folder) of a run folder, from the plain values of its
-    ``.hydra/config.yaml`` (`TrajectoryDataModule.from_run`; nothing in it is instantiated)."""
-    hp = TrajectoryDataModule.from_run(run).hparams
+def run_settings(
+    run: Path, data_dir: DataDir | None = None
+) -> tuple[str, str, TrajectoryDataModule]:
+    """(split label, step, data module) of a run folder, from the plain values of its
+    ``.hydra/config.yaml`` (`TrajectoryDataModule.from_run`, its trajectory folders replaced
+    by ``data_dir`` when given; nothing in it is instantiated)."""
+    dm = TrajectoryDataModule.from_run(run, data_dir)
+    hp = dm.hparams
     label = f"{hp.n_folds}-fold CV" if hp.split == "k_fold" else "one-fold"
-    return label, str(hp.step), Path(str(hp.data_dir))
+    return label, str(hp.step), dm
 
 
-def collect(runs: Iterable[str | Path], data_dir: str | Path | None = None) -> list[Evaluation]:
+def collect(runs: Iterable[str | Path], data_dir: DataDir | None = None) -> list[Evaluation]:
     """Merge the predictions of run folders by (split, step) and score them against the FE.
 
     Parameters
@@ -101,7 +108,8 @@ def collect(runs: Iterable[str | Path], data_dir: str | Path | None = None) -> l
     runs
         Run folders (glob patterns allowed) holding ``predictions/<model>.npz``.
     data_dir
-        The trajectory folder; by default each run's own ``data.data_dir``.
+        The trajectory folder, or folders (breasts named as `TrajectoryDataModule.sources`
+        names them); by default each run's own ``data.data_dir``.
     """
     patterns = [str(pattern) for pattern in runs]
     folders = [Path(p) for pattern in patterns for p in sorted(glob.glob(pattern))]
@@ -109,12 +117,11 @@ def collect(runs: Iterable[str | Path], data_dir: str | Path | None = None) -> l
         raise FileNotFoundError(f"runs: no run folder matches {patterns}")
     evaluations: dict[tuple[str, str], Evaluation] = {}
     for run in folders:
-        split, step, own_data = run_settings(run)
+        split, step, dm = run_settings(run, data_dir)
         predict_run(run)  # a run kept as model files: its predictions first
         files = sorted((run / "predictions").glob("*.npz"))
         if not files:
             continue
-        folder = Path(data_dir) if data_dir is not None else own_data
         e = evaluations.setdefault((split, step), Evaluation(split, step, {}, {}))
         for file in files:
             result = e.models.setdefault(file.stem, ModelResult(file.stem))
@@ -125,7 +132,11 @@ def collect(runs: Iterable[str | Path], data_dir: str | Path | None = None) -> l
                         f"{file}: breast {name} was already predicted in {result.sources[name]}"
                     )
                 if name not in e.truth:
-                    e.truth[name] = load_truth(folder / f"{name}.npz", step)
+                    try:
+                        source = dm.source(name)
+                    except ValueError as exc:  # a name of other data folders
+                        raise ValueError(f"{file}: {exc}") from exc
+                    e.truth[name] = load_truth(source, step, name)
                 truth = e.truth[name].positions
                 if prediction.shape != truth.shape:
                     raise ValueError(

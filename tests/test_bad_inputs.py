@@ -496,6 +496,12 @@ BAD_TRAIN = [
     (["data.split=bogus"], SETTING, r"data\.split must be 'one_fold' or 'k_fold'"),
     (["data.split=one_fold", "data.fold=2"], SETTING, r"data\.fold=2 selects a k-fold"),
     (["data.fold=0", "data.n_folds=1"], SETTING, r"data\.n_folds must be at least 2"),
+    (["data.data_dir=[{tmp}/a/trajectories,{tmp}/b/trajectories]"], SETTING,
+     r"data\.data_dir: folders of the same name \['trajectories'\]"),
+    (["data.train_conditions={{young_bone:[1,2]}}"], SETTING,
+     r"data\.train_conditions\.young_bone: unknown condition"),
+    (["data.train_conditions={{friction:[0.5,0.1]}}"], SETTING,
+     r"data\.train_conditions\.friction must be \[low, high\]"),
     # model
     (["model.step=bogus"], SETTING, r"model\.step must be one of"),
     (["data.step=unloaded", "model.step=compression"], ValueError,

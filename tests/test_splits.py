@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from datamodules.splits import k_folds, one_fold_split
+from datamodules.splits import check_bounds, k_folds, one_fold_split, within_bounds
 
 
 @pytest.fixture
@@ -41,3 +41,19 @@ def test_k_folds_partition_patients(cohort):
         k_folds(patients, sites, 1)
     with pytest.raises(ValueError, match="one entry per patient"):
         k_folds([1, 1, 2], ["A", "A", "B"], 2)
+
+
+def test_conditions_within_bounds():
+    cc = {"young_fat": 700.0, "young_gland": 2500.0, "friction": 0.25, "view": "cc", "angle": 45.0}
+    mlo = {**cc, "view": "mlo", "angle": 58.0}
+    bounds = check_bounds({"young_fat": [700, 2600], "angle": [40, 55]})
+    assert bounds == {"young_fat": (700.0, 2600.0), "angle": (40.0, 55.0)}
+    assert within_bounds(cc, bounds)  # bounds included; the angle binds mlo breasts only
+    assert not within_bounds(mlo, bounds)
+    assert within_bounds({**mlo, "angle": 55.0}, bounds)
+    assert not within_bounds({**cc, "young_fat": 699.9}, bounds)
+    assert within_bounds(cc, {}) and check_bounds(None) is None
+    with pytest.raises(ValueError, match=r"data\.train_conditions\.view: unknown condition"):
+        check_bounds({"view": ["cc", "cc"]})
+    with pytest.raises(ValueError, match=r"data\.train_conditions\.friction must be \[low, high\]"):
+        check_bounds({"friction": [True, 1]})

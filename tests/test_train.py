@@ -106,6 +106,31 @@ def test_model_settings_are_the_module_signature():
     assert model.hparams.hidden == 16
 
 
+def test_data_folders_and_condition_bounds_from_the_command_line(monkeypatch, tmp_path):
+    """``data.data_dir=[...]`` and ``data.train_conditions={...}`` (docs/cohort.md's cohort v2
+    command) compose and instantiate; the folders are recorded as written; the cohort is built
+    when one of them is its trajectory folder."""
+    monkeypatch.chdir(tmp_path)
+    cfg = _cfg(
+        "experiment=[paper_compression,mesh_gnn,cv_mesh_gnn]",
+        "data.data_dir=[data/cohort/v2/trajectories,data/cohort/v2/trajectories_mlo]",
+        "data.train_conditions={young_fat:[700,2600],young_gland:[1600,5900]}",
+        "data.fold=0",
+    )
+    dm = instantiate(cfg.data)
+    assert isinstance(dm, MeshGraphDataModule)
+    assert dm.hparams.data_dir == ["data/cohort/v2/trajectories", "data/cohort/v2/trajectories_mlo"]
+    assert dm.data_dirs[1] == tmp_path / "data/cohort/v2/trajectories_mlo"
+    assert dm.bounds == {"young_fat": (700.0, 2600.0), "young_gland": (1600.0, 5900.0)}
+    built = []
+    monkeypatch.setattr(train, "run_cohort", built.append)
+    train.ensure_cohort(cfg)  # the cohort is data/cohort/full: not one of the folders
+    assert not built
+    cohort = "cohort.out_dir=data/cohort/v2"
+    train.ensure_cohort(_cfg(cohort, "data.data_dir=[elsewhere/x,data/cohort/v2/trajectories]"))
+    assert len(built) == 1
+
+
 def test_train_refuses_a_model_of_another_step(tmp_path):
     cfg = _cfg(
         f"run_dir={tmp_path}",
