@@ -161,6 +161,12 @@ class Conditions:
         except ValueError as exc:
             raise ValueError(f"{source}: metadata field 'simulation': {exc}") from exc
 
+    def __str__(self) -> str:
+        """E.g. ``fat 1100 Pa, gland 2500 Pa, muscle 6000 Pa, skin 1000 Pa, friction 0.25, cc``."""
+        young = ", ".join(f"{t} {e:g} Pa" for t, e in self.young.items())
+        view = f"mlo at {self.angle:g} deg" if self.view == "mlo" else self.view
+        return f"{young}, friction {self.friction:g}, {view}"
+
     def vector(self) -> NDArray[np.float32]:
         """`CONDITION_FEATURES`, shape (7,)."""
         mlo = float(self.view == "mlo")

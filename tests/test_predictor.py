@@ -15,6 +15,7 @@ from hydra import compose, initialize_config_dir
 
 import predict
 from datamodules.features import FeatureSchema, compression_features, unloaded_features
+from datamodules.graphs import PAPER_CONDITIONS, Conditions
 from datamodules.trajectories import TrajectoryDataModule
 from fem.breasts.io import write_mesh
 from fem.contract.trajectory import NodeFlag
@@ -102,6 +103,13 @@ def test_wrong_models_and_thicknesses_are_refused(models):
         predict_breast(scheduled_trajectory(), unloaded, unloaded, [0.7])
     with pytest.raises(ValueError, match="is not smaller than the breast's cranio-caudal extent"):
         predict_breast(scheduled_trajectory(), None, compression, [5.0])
+    soft = Conditions({**PAPER_CONDITIONS.young, "fat": 500.0}, 0.25, "cc")
+    with pytest.raises(
+        ValueError,
+        match=r"paper's conditions only \(fat 1100 Pa, gland 2500 Pa, muscle 6000 Pa, skin 1000 "
+        r"Pa, friction 0.25, cc\); other stiffness",
+    ):
+        predict_breast(scheduled_trajectory(), None, compression, [0.7], soft)
 
 
 def _predict_cfg(models, tmp_path, *overrides):
