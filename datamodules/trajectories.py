@@ -13,8 +13,10 @@ the sequence model gets one node's step sequence per item, ``(T, F) -> (T, 3)``,
 models get flat ``(node, step)`` rows (`TrajectoryDataModule.rows`) from the same split.
 Splits are by patient (`datamodules.splits`): the paper's one-fold split or k-fold. Several
 trajectory folders (the cohort v2's views: the same breasts in ``trajectories/`` and
-``trajectories_mlo/``) make one data set whose breasts are named ``P0007_L@<folder name>``;
-a patient's breasts of every folder stay on one side of the split.
+``trajectories_mlo/``; or cohorts meshed at several resolutions) make one data set whose
+breasts are named ``P0007_L@<label>``, the label being the folder's path below the folders'
+common parent (`folder_labels`); a patient's breasts of every folder stay on one side of the
+split.
 """
 
 from __future__ import annotations
@@ -101,28 +103,48 @@ class Source:
 
 
 def data_folders(data_dir: DataDir) -> list[Path]:
-    """The trajectory folders of ``data.data_dir``: one folder, or a list of folders with
-    distinct names (the names tell their breasts apart).
+    """The trajectory folders of ``data.data_dir``: one folder, or a list of distinct folders
+    (`folder_labels` tells their breasts apart).
 
     Raises
     ------
     ValueError
-        No folder, or several folders of the same name.
+        No folder, a folder twice, or a folder inside another.
     """
     if isinstance(data_dir, str | os.PathLike):
         return [Path(data_dir)]
     folders = [Path(d) for d in data_dir]
     if not folders:
         raise ValueError("data.data_dir: an empty list of trajectory folders")
-    names = [f.name for f in folders]
-    shared = sorted({n for n in names if names.count(n) > 1})
-    if len(folders) > 1 and shared:
-        raise ValueError(
-            f"data.data_dir: folders of the same name {shared} in {[str(f) for f in folders]}: "
-            "several folders name their breasts and caches by the folder name, so the names "
-            "must differ"
-        )
+    if len(folders) > 1:
+        folder_labels(folders)
     return folders
+
+
+def folder_labels(folders: Sequence[Path]) -> list[str]:
+    """What names the breasts and caches of each of several trajectory folders: its path below
+    the folders' common parent, ``/`` written ``-`` (``trajectories`` and ``trajectories_mlo``
+    for the views of one cohort v2, ``full-trajectories`` and ``2x-trajectories`` for
+    ``data/cohort/full/trajectories`` and ``data/cohort/2x/trajectories``).
+
+    Raises
+    ------
+    ValueError
+        A folder twice, or a folder inside another.
+    """
+    absolute = [Path(os.path.abspath(f)) for f in folders]
+    common = Path(os.path.commonpath(absolute))
+    labels = ["-".join(f.relative_to(common).parts) for f in absolute]
+    twice = sorted(
+        {str(f) for f, label in zip(folders, labels, strict=True) if labels.count(label) > 1}
+    )
+    if twice or "" in labels:
+        raise ValueError(
+            f"data.data_dir: {twice or [str(common)]} given twice or holding another of "
+            f"{[str(f) for f in folders]}: each folder names its breasts "
+            "(<file stem>@<its path below the folders' common parent>)"
+        )
+    return labels
 
 
 def recorded_conditions(metadata: Mapping) -> dict[str, float | str] | None:
@@ -228,9 +250,10 @@ class TrajectoryDataModule(L.LightningDataModule):
     Parameters
     ----------
     data_dir : str or list of str
-        Folder of simulated ``P*_[LR].npz`` trajectories, or several folders of distinct
-        names (the views of the cohort v2): their breasts are named ``<file stem>@<folder
-        name>`` (``P0007_L@trajectories_mlo``), one folder's by the file stem.
+        Folder of simulated ``P*_[LR].npz`` trajectories, or several distinct folders (the
+        views of the cohort v2, cohorts of several resolutions): their breasts are named
+        ``<file stem>@<label>`` (`folder_labels`: ``P0007_L@trajectories_mlo``), one
+        folder's by the file stem.
     step : {"unloaded", "compression"}
         Which simulation step the models learn.
     split : {"one_fold", "k_fold"}, optional
@@ -245,7 +268,7 @@ class TrajectoryDataModule(L.LightningDataModule):
         Of the sequence loaders.
     cache_dir : str, optional
         Feature caches; default ``<data_dir>/cache`` (each folder's own); with several
-        folders ``<cache_dir>/<folder name>``.
+        folders ``<cache_dir>/<label>``.
     train_conditions : mapping of str to [low, high], optional
         Bounds on the simulation conditions of the training breasts
         (`datamodules.splits.BOUNDED_CONDITIONS`: ``young_fat``, ``young_gland``,
@@ -314,12 +337,12 @@ class TrajectoryDataModule(L.LightningDataModule):
             }
         )
         self.data_dirs = [f.absolute() for f in folders]
+        #: per folder, the suffix of its breasts' names (none for one folder)
+        self.labels = folder_labels(folders) if len(folders) > 1 else [""]
         if not cache_dir:
             self.caches = [f / "cache" for f in self.data_dirs]
-        elif len(folders) > 1:
-            self.caches = [Path(cache_dir).absolute() / f.name for f in self.data_dirs]
         else:
-            self.caches = [Path(cache_dir).absolute()]
+            self.caches = [Path(cache_dir).absolute() / label for label in self.labels]
         self.feature_names = STEP_FEATURES[step]
         self.train: list[Breast] = []
         self.val: list[Breast] = []
@@ -385,17 +408,14 @@ class TrajectoryDataModule(L.LightningDataModule):
         FileNotFoundError
             A folder has no trajectory; the message names it.
         """
-        several = len(self.data_dirs) > 1
         result = []
-        for folder, cache in zip(self.data_dirs, self.caches, strict=True):
+        for folder, cache, label in zip(self.data_dirs, self.caches, self.labels, strict=True):
             files = sorted(folder.glob("P*_[LR].npz"))
             if not files:
                 raise FileNotFoundError(f"{folder}: no simulated trajectories (P*_[LR].npz)")
             result += [
                 Source(
-                    f"{f.stem}@{folder.name}" if several else f.stem,
-                    f,
-                    cache / self.cache_kind / f.stem,
+                    f"{f.stem}@{label}" if label else f.stem, f, cache / self.cache_kind / f.stem
                 )
                 for f in files
             ]
@@ -411,13 +431,14 @@ class TrajectoryDataModule(L.LightningDataModule):
         """
         if len(self.data_dirs) == 1:
             return self.data_dirs[0] / f"{name}.npz"
-        stem, _, folder = name.partition("@")
-        for d in self.data_dirs:
-            if d.name == folder:
+        stem, _, label = name.partition("@")
+        for d, own in zip(self.data_dirs, self.labels, strict=True):
+            if own == label:
                 return d / f"{stem}.npz"
         raise ValueError(
             f"breast {name!r}: none of the data folders {[str(d) for d in self.data_dirs]} "
-            "(breasts of several folders are named <file stem>@<folder name>)"
+            "(breasts of several folders are named <file stem>@<folder path below their "
+            f"common parent>: {self.labels})"
         )
 
     def prepare_data(self) -> None:

@@ -5,6 +5,7 @@ benchmark, on tiny synthetic v2-like trajectories."""
 import copy
 import importlib.util
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -13,7 +14,7 @@ from conftest import SIMULATION_METADATA, tiny_trajectory
 from omegaconf import OmegaConf
 
 from datamodules.graphs import MeshGraphDataModule
-from datamodules.trajectories import TrajectoryDataModule, cache_is_current
+from datamodules.trajectories import TrajectoryDataModule, cache_is_current, folder_labels
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -92,10 +93,28 @@ def test_one_folder_keeps_its_names_and_cache_dir_splits_by_folder(views, tmp_pa
     assert stems["P0000_L@trajectories"].parents[1] == tmp_path / "c2" / "trajectories"
 
 
+def test_folders_of_one_name_are_labelled_by_their_path(views, tmp_path):
+    """Two cohorts' ``trajectories`` folders (say, two mesh resolutions) name their breasts by
+    the path below the common parent, and each name leads back to its file."""
+    other = tmp_path / "2x" / "trajectories"
+    shutil.copytree(views[0], other)
+    assert folder_labels([views[0], other]) == ["v2-trajectories", "2x-trajectories"]
+    assert folder_labels(views) == ["trajectories", "trajectories_mlo"]
+    dm = TrajectoryDataModule([str(views[0]), str(other)], cache_dir=str(tmp_path / "c"))
+    sources = {s.name: s for s in dm.sources()}
+    assert len(sources) == 32
+    assert sources["P0003_R@2x-trajectories"].path == other.absolute() / "P0003_R.npz"
+    assert sources["P0003_R@2x-trajectories"].stem.parents[1] == tmp_path / "c" / "2x-trajectories"
+    assert dm.source("P0003_R@v2-trajectories") == views[0].absolute() / "P0003_R.npz"
+    with pytest.raises(ValueError, match=r"breast 'P0003_R@trajectories': none of the data"):
+        dm.source("P0003_R@trajectories")
+
+
 def test_data_folders_refused(views, tmp_path):
-    other = tmp_path / "elsewhere" / "trajectories"
-    with pytest.raises(ValueError, match=r"folders of the same name \['trajectories'\]"):
-        TrajectoryDataModule([str(views[0]), str(other)])
+    with pytest.raises(ValueError, match=r"given twice or holding another"):
+        TrajectoryDataModule([str(views[0]), str(views[1]), str(views[0])])
+    with pytest.raises(ValueError, match=r"given twice or holding another"):
+        TrajectoryDataModule([str(views[0]), str(views[0] / "sub")])
     with pytest.raises(ValueError, match="empty list"):
         TrajectoryDataModule([])
     empty = tmp_path / "empty_view"
