@@ -6,10 +6,13 @@ import pytest
 import skfem
 
 from fem.contract import projection
-from fem.contract.plates import cc_plates, covered, penetration
+from fem.contract.plates import cc_plates, covered, penetration, rotate_plates
 from fem.contract.projection import (
     ProjectionFailed,
+    constraints,
     free_projectors,
+    project,
+    project_steps,
     project_valid,
     volume_gradients,
 )
@@ -94,6 +97,69 @@ def test_nodes_inside_a_plate_come_out_and_held_directions_hold(block):
     np.testing.assert_array_equal(out.points[held_node, :2], x[held_node, :2])
     assert out.points[held_node, 2] == pytest.approx(9.0)
     assert (signed_volume(out.points, t) / signed_volume(p, t)).min() >= 0.05
+
+
+@pytest.mark.parametrize("stall_sweeps", [projection.STALL_SWEEPS, 3])
+def test_the_steps_of_a_trajectory_project_together_as_each_alone(block, monkeypatch, stall_sweeps):
+    """`project_steps` sweeps all the invalid steps at once; each must come out as `project`
+    makes it alone: a valid step, inverted elements, skin in a plate, two folds against the
+    held bottom that stall at different sweeps (the smoothing; with stalls after 3 sweeps,
+    several steps are smoothed in the same sweep), and a step without a valid shape."""
+    monkeypatch.setattr(projection, "STALL_SWEEPS", stall_sweeps)
+    p, t = block
+    skin = np.flatnonzero((p == 0).any(axis=1) | (p == 10).any(axis=1))
+    bottom = np.flatnonzero(p[:, 2] == 0)
+    held = (np.tile(bottom, 3), np.repeat(np.eye(3), len(bottom), axis=0))
+    c = constraints(t, p, skin, 0.1, (-0.01, 0.01), held, max_sweeps=300)
+    pushed = p.copy()
+    pushed[p[:, 2] == 10, 2] += 1.0  # the top face 1.5 mm into the upper plate at z = 9.5
+    steps = np.stack(
+        [
+            p,
+            p + np.random.default_rng(1).normal(0, 1.0, p.shape),  # inverted elements
+            pushed,
+            p + np.random.default_rng(3).normal(0, 1.5, p.shape),  # folds: stalls
+            p + np.random.default_rng(7).normal(0, 1.5, p.shape),
+            p,  # squeezed to a plane by its plates: no valid shape
+        ]
+    )
+    a = np.radians(10.0)  # plates tilted about x, away from the block: each step its own normals
+    tilt = np.array([[1.0, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+    far = rotate_plates(cc_plates([-1.0, -10.0], [-1.0, 20.0]), tilt)
+    plates = np.stack(
+        [
+            far,
+            far,
+            cc_plates([-1.0, 0.0], [-1.0, 9.5]),
+            far,
+            far,
+            cc_plates([-1.0, 5.0], [-1.0, 5.0]),
+        ]
+    )
+    smoothed = []
+    smoothing_step = projection._smoothing_step
+    monkeypatch.setattr(
+        projection,
+        "_smoothing_step",
+        lambda x, *rest: smoothed.append(len(x)) or smoothing_step(x, *rest),
+    )
+    out = project_steps(c, steps, plates)
+    assert smoothed and (out.sweeps[3:5] > stall_sweeps).all()
+    if stall_sweeps == 3:
+        assert max(smoothed) > 1  # several steps smoothed in one sweep
+    assert out.sweeps[0] == 0 and (out.sweeps[1:5] > 0).all() and list(out.failed) == [5]
+    for k, (x, plate) in enumerate(zip(steps, plates, strict=True)):
+        try:
+            alone = project(c, x, plate)
+        except ProjectionFailed as exc:
+            assert out.failed[k] == str(exc)
+            np.testing.assert_array_equal(out.points[k], c.held(x))  # kept as given
+            continue
+        np.testing.assert_allclose(out.points[k], alone.points, rtol=0, atol=1e-9)
+        assert out.sweeps[k] == alone.sweeps
+        assert out.min_volume_ratio[k] == pytest.approx(alone.min_volume_ratio, abs=1e-12)
+        assert out.moved_rms_mm[k] == pytest.approx(alone.moved_rms_mm, abs=1e-9)
+        assert out.moved_max_mm[k] == pytest.approx(alone.moved_max_mm, abs=1e-9)
 
 
 def test_free_projectors_remove_the_span_of_the_held_directions():

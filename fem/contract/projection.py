@@ -20,7 +20,11 @@ the patch, and the sweeps go on.
 * whole volume: ``V(x) / V(reference) - 1`` within ``volume_change`` (lower, upper), moving the
   boundary nodes along their area-weighted normals.
 
-Pure NumPy; one sweep is a few vectorised passes over the elements.
+Pure NumPy. The shapes of a trajectory (`project_steps`; `project` is the case of one shape)
+sweep together, each with its own plates and its own sweep count and stall counter: one sweep
+is a few vectorised passes over the (shape, violated element) pairs of all the shapes still
+invalid, and a shape leaves the sweeps as soon as it is valid, so each shape goes through the
+same operations as alone.
 """
 
 from __future__ import annotations
@@ -28,9 +32,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
-from fem.contract.plates import NORMAL, covered, penetration
+from fem.contract.plates import AXIS, NORMAL, ORIGIN
 from fem.contract.quality import mesh_edges, signed_volume
 
 #: Volume ratio asked of a violated element beyond ``min_volume_ratio`` (the linearised
@@ -78,29 +82,54 @@ class ProjectionFailed(RuntimeError):
 
 
 def volume_gradients(points: NDArray, cells: NDArray) -> NDArray[np.float64]:
-    """``dV_e / dx_a`` of each tetrahedron's signed volume, (E, 4, 3), mm^2.
+    """``dV_e / dx_a`` of each tetrahedron's signed volume, (..., E, 4, 3), mm^2, of the shapes
+    ``points`` (..., N, 3).
 
     The gradient at a vertex is the opposite face's area vector over three, pointing from that
     face towards the vertex: moving the vertex along it grows the volume.
     """
-    p = points[cells]  # (E, 4, 3)
+    p = points[..., cells, :]  # (..., E, 4, 3)
     g = np.empty_like(p)
-    g[:, 1] = np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]) / 6.0
-    g[:, 2] = np.cross(p[:, 3] - p[:, 0], p[:, 1] - p[:, 0]) / 6.0
-    g[:, 3] = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]) / 6.0
-    g[:, 0] = -g[:, 1:].sum(axis=1)
+    g[..., 1, :] = np.cross(p[..., 2, :] - p[..., 0, :], p[..., 3, :] - p[..., 0, :]) / 6.0
+    g[..., 2, :] = np.cross(p[..., 3, :] - p[..., 0, :], p[..., 1, :] - p[..., 0, :]) / 6.0
+    g[..., 3, :] = np.cross(p[..., 1, :] - p[..., 0, :], p[..., 2, :] - p[..., 0, :]) / 6.0
+    g[..., 0, :] = -g[..., 1:, :].sum(axis=-2)
     return g
 
 
+def plate_coordinates(
+    points: NDArray, plates: NDArray
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Where the points lie relative to each plate, for several shapes with their own plates.
+
+    Parameters
+    ----------
+    points : (..., K, 3) float
+        Positions, mm.
+    plates : (..., P, 3, 3) float
+        Plate frames (`fem.contract.plates`), the leading axes as ``points``'.
+
+    Returns
+    -------
+    along : (..., P, K) float64
+        ``(p - origin) . axis``, mm: the plate covers the point when >= 0
+        (`fem.contract.plates.covered`).
+    depth : (..., P, K) float64
+        ``-(p - origin) . normal``, mm: inside the plate when > 0
+        (`fem.contract.plates.penetration`).
+    """
+    points, plates = np.asarray(points, np.float64), np.asarray(plates, np.float64)
+    rel = points[..., None, :, :] - plates[..., :, None, ORIGIN, :]  # (..., P, K, 3)
+    along = np.einsum("...pkj,...pj->...pk", rel, plates[..., AXIS, :])
+    depth = -np.einsum("...pkj,...pj->...pk", rel, plates[..., NORMAL, :])
+    return along, depth
+
+
 def plate_depth(points: NDArray, skin: NDArray, plates: NDArray) -> NDArray[np.float64]:
-    """Depth of each skin node inside each plate covering it, (2, S) mm (0 when not)."""
-    p = points[skin]
-    return np.stack(
-        [
-            np.where(covered(p, plate), np.maximum(penetration(p, plate), 0.0), 0.0)
-            for plate in plates
-        ]
-    )
+    """Depth of each skin node inside each plate covering it, (..., 2, S) mm (0 when not), of
+    the shapes ``points`` (..., N, 3) with their plates (..., 2, 3, 3)."""
+    along, depth = plate_coordinates(points[..., skin, :], plates)
+    return np.where(along >= 0, np.maximum(depth, 0.0), 0.0)
 
 
 @dataclass(frozen=True)
@@ -155,20 +184,41 @@ class Constraints:
         return self.reference + np.einsum("nij,...nj->...ni", self.free, points - self.reference)
 
     def measure(
-        self, x: NDArray, plates: NDArray | None
-    ) -> tuple[NDArray, float, NDArray | None, float]:
-        """Element volumes (E,), whole-volume change, plate contact (`_plate_contact`) and the
-        deepest skin node inside a plate (mm) of the shape ``x`` (N, 3)."""
-        volume = signed_volume(x, self.cells)
-        total = volume.sum() / self.volume.sum() - 1.0
-        walls, deep = _plate_contact(x, self.skin, plates) if plates is not None else (None, 0.0)
-        return volume, float(total), walls, deep
+        self, x: NDArray, plates: NDArray | None, volume: NDArray | None = None
+    ) -> tuple[NDArray, NDArray, NDArray | None, NDArray]:
+        """What the constraints see of the shapes ``x`` (..., N, 3), with their ``plates``
+        (..., 2, 3, 3) when there are skin nodes (and their element ``volume`` (..., E), mm^3,
+        when already known: `_moved_volumes`).
 
-    def off_volume(self, total: float) -> bool:
-        """Whether a whole-volume change ``total`` lies outside the accepted range."""
-        return self.volume_change is not None and not (
-            self.volume_change[0] <= total <= self.volume_change[1]
-        )
+        Returns
+        -------
+        volume : (..., E) float64
+            Element volumes, mm^3.
+        total : (...) float64
+            Whole-volume change ``V / V(reference) - 1``.
+        contact : (..., 2, N) bool or None
+            Per plate, the skin nodes it covers lying on it or inside it (within `ON_PLATE`).
+        deep : (...) float64
+            The deepest skin node inside a plate covering it, mm (0 when none).
+        """
+        volume = signed_volume(x, self.cells) if volume is None else volume
+        total = volume.sum(axis=-1) / self.volume.sum() - 1.0
+        if plates is None:
+            return volume, total, None, np.zeros(total.shape)
+        along, depth = plate_coordinates(x[..., self.skin, :], plates)
+        depth = np.where(along >= 0, depth, -np.inf)  # (..., 2, S): -inf where not covered
+        contact = np.zeros((*depth.shape[:-1], x.shape[-2]), bool)
+        contact[..., self.skin] = depth >= -ON_PLATE
+        deep = depth.max(axis=(-2, -1), initial=0.0) + 0.0  # + 0: on a plate is 0, not -0
+        return volume, total, contact, deep
+
+    def off_volume(self, total: ArrayLike) -> NDArray[np.bool_]:
+        """Whether each whole-volume change ``total`` (...) lies outside the accepted range."""
+        total = np.asarray(total)
+        if self.volume_change is None:
+            return np.zeros(total.shape, bool)
+        lower, upper = self.volume_change
+        return ~((lower <= total) & (total <= upper))
 
 
 def constraints(
@@ -218,7 +268,7 @@ def constraints(
 def project(c: Constraints, points: NDArray, plates: NDArray | None = None) -> Projection:
     """The shape ``points`` (N, 3) moved as little as position-based projection can until it
     satisfies ``c`` (with ``plates`` (2, 3, 3) when ``c`` has skin nodes): the held directions
-    first, then Jacobi sweeps.
+    first, then Jacobi sweeps (`project_steps`' with one step).
 
     Raises
     ------
@@ -232,50 +282,20 @@ def project(c: Constraints, points: NDArray, plates: NDArray | None = None) -> P
         raise ValueError(f"points {x0.shape} and reference {c.reference.shape} must both be (N, 3)")
     if (plates is None) != (c.skin is None):
         raise ValueError("plates and skin go together")
-    x = c.held(x0)  # held as in ``reference``
-    sweeps, fewest, stalled = 0, np.inf, 0
-    for sweeps in range(c.max_sweeps + 1):
-        volume, total, walls, deep = c.measure(x, plates)
-        bad = volume < c.target
-        off_volume = c.off_volume(total)
-        if not bad.any() and not off_volume and deep <= c.tolerance_mm:
-            break
-        if sweeps == c.max_sweeps:
-            raise ProjectionFailed(
-                f"after {c.max_sweeps} sweeps: {int(bad.sum())} elements below volume ratio "
-                f"{c.min_volume_ratio:g}, volume change {100 * total:+.2f} %, "
-                f"{deep:.3g} mm inside a plate"
-            )
-        fewest, stalled = (bad.sum(), 0) if bad.sum() < fewest else (fewest, stalled + 1)
-        if stalled >= STALL_SWEEPS:  # requests that cancel: unfold the patch
-            x = _smoothing_step(x, c.edges, np.unique(c.cells[bad]), c.free)
-            fewest, stalled = np.inf, 0
-        else:
-            deficit = OVERSHOOT * c.target[bad] - volume[bad]
-            x = _element_sweep(x, c.cells, bad, deficit, c.size[bad], c.free, walls)
-        if off_volume:
-            lower, upper = c.volume_change
-            margin = 0.1 * (upper - lower)  # aim inside: the linearised step lands near it
-            goal = (1.0 + np.clip(total, lower + margin, upper - margin)) * c.volume.sum()
-            deficit = goal - signed_volume(x, c.cells).sum()
-            x = _whole_volume_step(x, c.cells, deficit, float(np.median(c.size)), c.free)
-        if plates is not None:
-            x = _plate_step(x, c.skin, plates)
-    return _projection(x0, x, sweeps, volume, c.volume, total, deep)
-
-
-def _projection(
-    x0: NDArray, x: NDArray, sweeps: int, volume: NDArray, v_ref: NDArray, total: float, deep: float
-) -> Projection:
-    moved = np.linalg.norm(x - x0, axis=-1)
+    out = _jacobi_sweeps(
+        c, c.held(x0)[None], None if plates is None else np.asarray(plates, np.float64)[None]
+    )
+    if out.failed:
+        raise ProjectionFailed(out.failed[0])
+    moved = np.linalg.norm(out.points[0] - x0, axis=-1)
     return Projection(
-        points=x,
-        sweeps=sweeps,
+        points=out.points[0],
+        sweeps=int(out.sweeps[0]),
         moved_rms_mm=float(np.sqrt(np.mean(moved**2))),
         moved_max_mm=float(moved.max(initial=0.0)),
-        min_volume_ratio=float((volume / v_ref).min()),
-        volume_change=float(total),
-        max_penetration_mm=float(deep),
+        min_volume_ratio=float(out.min_volume_ratio[0]),
+        volume_change=float(out.volume_change[0]),
+        max_penetration_mm=float(out.max_penetration_mm[0]),
     )
 
 
@@ -366,65 +386,160 @@ class StepProjections:
 
 def project_steps(c: Constraints, steps: NDArray, plates: NDArray | None = None) -> StepProjections:
     """Every shape of ``steps`` (T, N, 3) projected onto ``c`` (with the plates of each step,
-    ``plates`` (T, 2, 3, 3), when ``c`` has skin nodes).
+    ``plates`` (T, 2, 3, 3), when ``c`` has skin nodes), as `project` projects each alone.
 
     The held directions are removed from all steps at once and every step's constraints
-    measured in one vectorised pass; only the steps still invalid then run `project`'s
-    sweeps, so a trajectory that is valid but for its held directions costs a few array
-    passes, not a loop of sweeps.
+    measured in one vectorised pass; the steps still invalid then sweep together
+    (`_jacobi_sweeps`): a trajectory takes as many passes as its slowest step has sweeps, each
+    over the violated elements of all the steps still invalid.
     """
     x0 = np.asarray(steps, np.float64)
     if x0.ndim != 3 or x0.shape[1:] != c.reference.shape:
         raise ValueError(f"steps {x0.shape} must be (T, {len(c.reference)}, 3)")
     if (plates is None) != (c.skin is None):
         raise ValueError("plates and skin go together")
-    x = c.held(x0)
-    volume = signed_volume(x, c.cells)  # (T, E)
-    total = volume.sum(axis=1) / c.volume.sum() - 1.0
-    deep = (
-        np.array(
-            [plate_depth(xt, c.skin, p).max(initial=0.0) for xt, p in zip(x, plates, strict=True)]
-        )
-        if plates is not None
-        else np.zeros(len(x))
-    )
-    sweeps = np.zeros(len(x), np.int64)
-    failed: dict[int, str] = {}
-    ratio = (volume / c.volume).min(axis=1)
-    for t in range(len(x)):
-        if (
-            (volume[t] >= c.target).all()
-            and not c.off_volume(total[t])
-            and deep[t] <= c.tolerance_mm
-        ):
-            continue
-        try:
-            p = project(c, x[t], None if plates is None else plates[t])
-        except ProjectionFailed as exc:
-            failed[t] = str(exc)
-            continue
-        x[t], sweeps[t], ratio[t] = p.points, p.sweeps, p.min_volume_ratio
-    moved = np.linalg.norm(x - x0, axis=-1)  # (T, N)
+    out = _jacobi_sweeps(c, c.held(x0), None if plates is None else np.asarray(plates, np.float64))
+    moved = np.linalg.norm(out.points - x0, axis=-1)  # (T, N)
     return StepProjections(
-        points=x,
-        sweeps=sweeps,
+        points=out.points,
+        sweeps=out.sweeps,
         moved_rms_mm=np.sqrt(np.mean(moved**2, axis=1)),
         moved_max_mm=moved.max(axis=1, initial=0.0),
-        min_volume_ratio=ratio,
-        failed=failed,
+        min_volume_ratio=out.min_volume_ratio,
+        failed=out.failed,
     )
 
 
-def _plate_contact(x: NDArray, skin: NDArray, plates: NDArray) -> tuple[NDArray[np.float64], float]:
-    """Per plate, the normal (into the breast) at each node lying on it, zero elsewhere
-    (2, N, 3), and the deepest skin node inside a plate covering it, mm."""
-    walls, deep = np.zeros((len(plates), len(x), 3)), 0.0
-    p = x[skin]
-    for k, plate in enumerate(plates):
-        depth = np.where(covered(p, plate), penetration(p, plate), -np.inf)
-        walls[k, skin[depth >= -ON_PLATE]] = plate[NORMAL]
-        deep = max(deep, float(depth.max(initial=0.0)))
-    return walls, deep
+@dataclass(frozen=True)
+class _Sweeps:
+    """Shapes after `_jacobi_sweeps`; a failed shape's entries are its input's.
+
+    Attributes
+    ----------
+    points : (T, N, 3) float64
+        The valid shapes, mm.
+    sweeps : (T,) int64
+        Jacobi sweeps per shape (0: valid as given; also a failed shape's).
+    min_volume_ratio, volume_change, max_penetration_mm : (T,) float64
+        Smallest ``V_e / V_e(reference)``, ``V / V(reference) - 1`` and deepest skin node
+        inside a plate (mm) of each shape.
+    failed : dict[int, str]
+        The shapes still invalid after ``max_sweeps`` sweeps, with what still fails.
+    """
+
+    points: NDArray[np.float64]
+    sweeps: NDArray[np.int64]
+    min_volume_ratio: NDArray[np.float64]
+    volume_change: NDArray[np.float64]
+    max_penetration_mm: NDArray[np.float64]
+    failed: dict[int, str]
+
+
+def _jacobi_sweeps(c: Constraints, x: NDArray, plates: NDArray | None) -> _Sweeps:
+    """Jacobi sweeps of the shapes ``x`` (T, N, 3), held directions removed, each with its own
+    ``plates`` (T, 2, 3, 3) (None when ``c`` has no skin nodes), until it satisfies ``c``.
+
+    Every sweep measures the shapes still invalid and moves them all (`_sweep`); a shape leaves
+    as soon as it is valid, or after ``c.max_sweeps`` sweeps as failed. Each shape keeps its
+    own stall count: after `STALL_SWEEPS` sweeps without fewer violated elements it takes a
+    smoothing step instead of the elements' requests, as it would alone.
+    """
+    volume, total, contact, deep = c.measure(x, plates)
+    sweeps = np.zeros(len(x), np.int64)
+    ratio, change, deepest = (volume / c.volume).min(axis=1), total.copy(), deep.copy()
+    failed: dict[int, str] = {}
+    out = x.copy()
+    active, y, p = np.arange(len(x)), x, plates  # the shapes still sweeping: index, shape, plates
+    before = y  # their shapes before the last sweep
+    fewest, stalled = np.full(len(x), np.inf), np.zeros(len(x), np.int64)
+    for sweep in range(c.max_sweeps + 1):
+        if sweep:  # only the elements the sweep moved change volume
+            volume, total, contact, deep = c.measure(
+                y, p, _moved_volumes(c.cells, y, before, volume)
+            )
+        bad = volume < c.target  # (S, E)
+        off = c.off_volume(total)
+        valid = ~bad.any(axis=1) & ~off & (deep <= c.tolerance_mm)
+        done = active[valid]
+        out[done], sweeps[done], ratio[done] = y[valid], sweep, (volume[valid] / c.volume).min(1)
+        change[done], deepest[done] = total[valid], deep[valid]
+        if sweep == c.max_sweeps:
+            for i in np.flatnonzero(~valid):
+                failed[int(active[i])] = (
+                    f"after {c.max_sweeps} sweeps: {int(bad[i].sum())} elements below volume "
+                    f"ratio {c.min_volume_ratio:g}, volume change {100 * total[i]:+.2f} %, "
+                    f"{deep[i]:.3g} mm inside a plate"
+                )
+            break
+        if valid.any():
+            keep = ~valid
+            active, y, volume, total, bad, off = (
+                a[keep] for a in (active, y, volume, total, bad, off)
+            )
+            fewest, stalled = fewest[keep], stalled[keep]
+            p, contact = (None, None) if p is None else (p[keep], contact[keep])
+        if not len(active):
+            break
+        count = bad.sum(axis=1)
+        fewer = count < fewest
+        fewest, stalled = np.where(fewer, count, fewest), np.where(fewer, 0, stalled + 1)
+        stall = stalled >= STALL_SWEEPS  # requests that cancel: unfold the patch
+        before, y = y, _sweep(c, y, p, volume, total, contact, bad, off, stall)
+        fewest[stall], stalled[stall] = np.inf, 0
+    return _Sweeps(out, sweeps, ratio, change, deepest, failed)
+
+
+def _sweep(
+    c: Constraints,
+    x: NDArray,
+    plates: NDArray | None,
+    volume: NDArray,
+    total: NDArray,
+    contact: NDArray | None,
+    bad: NDArray,
+    off: NDArray,
+    stall: NDArray,
+) -> NDArray[np.float64]:
+    """One Jacobi sweep of the shapes ``x`` (S, N, 3), as measured (`Constraints.measure`:
+    ``volume``, ``total``, ``contact``; ``bad`` (S, E) their elements below the target,
+    ``off`` (S,) those outside the volume range): the violated elements' requests, or for the
+    shapes that ``stall`` (S,) one smoothing step of those elements' nodes; then the whole
+    volume of the shapes ``off``; then the plates."""
+    measured, pushed = x, bad & ~stall[:, None]
+    step, element = np.nonzero(pushed)
+    deficit = OVERSHOOT * c.target[element] - volume[step, element]
+    x = _element_sweep(x, c.cells, pushed, deficit, c.size[element], c.free, contact, plates)
+    if stall.any():
+        nodes = np.zeros((int(stall.sum()), x.shape[1]), bool)
+        step, element = np.nonzero(bad[stall])
+        nodes[step[:, None], c.cells[element]] = True
+        x[stall] = _smoothing_step(x[stall], c.edges, nodes, c.free)
+    if off.any():
+        lower, upper = c.volume_change
+        margin = 0.1 * (upper - lower)  # aim inside: the linearised step lands near it
+        goal = (1.0 + np.clip(total[off], lower + margin, upper - margin)) * c.volume.sum()
+        deficit = goal - _moved_volumes(c.cells, x[off], measured[off], volume[off]).sum(axis=1)
+        x[off] = _whole_volume_step(x[off], c.cells, deficit, float(np.median(c.size)), c.free)
+    if plates is not None:
+        x = _plate_step(x, c.skin, plates)
+    return x
+
+
+def _moved_volumes(
+    cells: NDArray, x: NDArray, before: NDArray, volume: NDArray
+) -> NDArray[np.float64]:
+    """Element volumes (S, E) of the shapes ``x`` (S, N, 3), mm^3, from ``volume`` (S, E) of
+    the shapes ``before`` (S, N, 3): `fem.contract.quality.signed_volume` of only the elements
+    with a node that moved, the others' as they were (the same numbers as all recomputed)."""
+    other = x != before
+    moved = other[..., 0] | other[..., 1] | other[..., 2]  # (S, N)
+    touched = moved[:, cells[:, 0]] | moved[:, cells[:, 1]]
+    touched |= moved[:, cells[:, 2]] | moved[:, cells[:, 3]]  # (S, E)
+    step, element = np.nonzero(touched)
+    volume = volume.copy()
+    at = cells[element] + x.shape[1] * step[:, None]  # rows of the shapes' nodes stacked
+    volume[step, element] = signed_volume(x.reshape(-1, 3), at)
+    return volume
 
 
 def free_projectors(n: int, held: tuple[NDArray, NDArray] | None) -> NDArray[np.float64]:
@@ -439,6 +554,11 @@ def free_projectors(n: int, held: tuple[NDArray, NDArray] | None) -> NDArray[np.
     return vectors @ np.swapaxes(vectors, 1, 2)
 
 
+def _sum_at(index: NDArray, values: NDArray, size: int) -> NDArray[np.float64]:
+    """Sums of the vectors ``values`` (K, 3) at the rows ``index`` (K,) of a (size, 3) array."""
+    return np.stack([np.bincount(index, values[:, i], minlength=size) for i in range(3)], axis=1)
+
+
 def _element_sweep(
     x: NDArray,
     cells: NDArray,
@@ -446,60 +566,76 @@ def _element_sweep(
     deficit: NDArray,
     size: NDArray,
     free: NDArray,
-    walls: NDArray | None = None,
+    contact: NDArray | None = None,
+    plates: NDArray | None = None,
 ) -> NDArray[np.float64]:
-    """One Jacobi pass over the elements ``bad``: each asks ``deficit`` (B,) mm^3 more volume
-    of its vertices, along the directions they may move in (``free``: `free_projectors`), at
-    most its ``size`` (B,) mm per vertex (a nearly flat element's linearised request can be
-    unbounded); a node takes the mean of its requests. A vertex on a plate (``walls``:
-    `_plate_contact`) is not asked to move into it: the gradient's component into the plate is
-    dropped, so the other vertices make the volume."""
-    nodes = cells[bad]
-    g = np.einsum("eaij,eaj->eai", free[nodes], volume_gradients(x, nodes))  # (B, 4, 3)
-    for normals in () if walls is None else walls:
-        n = normals[nodes]  # (B, 4, 3), zero off the plate
-        into = np.minimum(np.einsum("eaj,eaj->ea", g, n), 0.0)
-        g -= into[:, :, None] * n
+    """One Jacobi pass over the elements ``bad`` (S, E) bool of the shapes ``x`` (S, N, 3):
+    each asks ``deficit`` (B,) mm^3 more volume of its vertices (B: the pairs of
+    ``np.nonzero(bad)``, in its order), along the directions they may move in (``free``:
+    `free_projectors`), at most its ``size`` (B,) mm per vertex (a nearly flat element's
+    linearised request can be unbounded); a node takes the mean of its requests. A vertex on a
+    plate (``contact`` (S, 2, N) of `Constraints.measure`, with the shapes' ``plates``) is not
+    asked to move into it: the gradient's component into the plate is dropped, so the other
+    vertices make the volume."""
+    shapes, n = x.shape[:2]
+    step, element = np.nonzero(bad)
+    nodes = cells[element]  # (B, 4)
+    at = nodes + n * step[:, None]  # (B, 4): rows of the shapes' nodes stacked, (S * N, 3)
+    flat = x.reshape(-1, 3)
+    g = np.einsum("eaij,eaj->eai", free[nodes], volume_gradients(flat, at))  # (B, 4, 3)
+    for k in range(0 if contact is None else contact.shape[1]):
+        on = contact[:, k].reshape(-1)[at]  # (B, 4)
+        normal = on[:, :, None] * plates[step, k, NORMAL][:, None, :]  # (B, 4, 3), 0 off it
+        into = np.minimum(np.einsum("eaj,eaj->ea", g, normal), 0.0)
+        g -= into[:, :, None] * normal
     norm2 = np.einsum("eaj,eaj->e", g, g)
-    step = (deficit / np.maximum(norm2, 1e-30))[:, None, None] * g
-    length = np.linalg.norm(step, axis=2, keepdims=True)  # (B, 4, 1)
-    step *= np.minimum(1.0, size[:, None, None] / np.maximum(length, 1e-30))
-    out = np.zeros_like(x)
-    np.add.at(out, nodes.ravel(), step.reshape(-1, 3))
-    count = np.bincount(nodes.ravel(), minlength=len(x))
-    return x + out / np.maximum(count, 1)[:, None]
+    request = (deficit / np.maximum(norm2, 1e-30))[:, None, None] * g
+    length = np.linalg.norm(request, axis=2, keepdims=True)  # (B, 4, 1)
+    request *= np.minimum(1.0, size[:, None, None] / np.maximum(length, 1e-30))
+    out = _sum_at(at.ravel(), request.reshape(-1, 3), shapes * n)
+    count = np.bincount(at.ravel(), minlength=shapes * n)
+    return x + (out / np.maximum(count, 1)[:, None]).reshape(x.shape)
 
 
 def _smoothing_step(x: NDArray, edges: NDArray, nodes: NDArray, free: NDArray) -> NDArray:
-    """One Laplacian smoothing step of ``nodes`` (K,): each moves to the mean of its mesh
-    neighbours (``edges`` (2, 2M)), along the directions it may move in (``free``)."""
+    """One Laplacian smoothing step of the nodes ``nodes`` (S, N) bool of the shapes ``x``
+    (S, N, 3): each moves to the mean of its mesh neighbours (``edges`` (2, 2M)), along the
+    directions it may move in (``free``)."""
+    shapes, n = x.shape[:2]
     source, target = edges
-    mine = np.isin(target, nodes)
-    total = np.zeros_like(x)
-    np.add.at(total, target[mine], x[source[mine]])
-    count = np.bincount(target[mine], minlength=len(x))[nodes]
-    x = x.copy()
-    x[nodes] += np.einsum("nij,nj->ni", free[nodes], total[nodes] / count[:, None] - x[nodes])
-    return x
+    step, edge = np.nonzero(nodes[:, target])  # the edges into a smoothed node
+    at = n * step + target[edge]
+    flat = x.reshape(-1, 3)
+    total = _sum_at(at, flat[n * step + source[edge]], shapes * n)
+    count = np.bincount(at, minlength=shapes * n)
+    moved = np.flatnonzero(nodes)  # rows of the stacked (S * N, 3)
+    out = flat.copy()
+    mean = total[moved] / count[moved, None]
+    out[moved] += np.einsum("nij,nj->ni", free[moved % n], mean - flat[moved])
+    return out.reshape(x.shape)
 
 
 def _whole_volume_step(
-    x: NDArray, cells: NDArray, deficit: float, size: float, free: NDArray
+    x: NDArray, cells: NDArray, deficit: NDArray, size: float, free: NDArray
 ) -> NDArray[np.float64]:
-    """The minimum-norm linearised step that adds ``deficit`` mm^3 to the whole volume: the
-    nodes along the sum of their elements' volume gradients (interior nodes' cancel), in the
-    directions they may move in, at most ``size`` mm per node."""
-    g = np.zeros_like(x)
-    np.add.at(g, cells.ravel(), volume_gradients(x, cells).reshape(-1, 3))
-    g = np.einsum("nij,nj->ni", free, g)
-    step = deficit / max(float(np.einsum("ij,ij->", g, g)), 1e-30) * g
-    longest = float(np.linalg.norm(step, axis=1).max(initial=0.0))
-    return x + step * min(1.0, size / max(longest, 1e-30))
+    """The minimum-norm linearised step of each shape ``x`` (S, N, 3) that adds its
+    ``deficit`` (S,) mm^3 to its whole volume: the nodes along the sum of their elements'
+    volume gradients (interior nodes' cancel), in the directions they may move in, at most
+    ``size`` mm per node."""
+    shapes, n = x.shape[:2]
+    at = (cells.ravel() + n * np.arange(shapes)[:, None]).ravel()  # (S * 4E,)
+    g = _sum_at(at, volume_gradients(x, cells).reshape(-1, 3), shapes * n).reshape(x.shape)
+    g = np.einsum("nij,snj->sni", free, g)
+    step = (deficit / np.maximum(np.einsum("snj,snj->s", g, g), 1e-30))[:, None, None] * g
+    longest = np.linalg.norm(step, axis=2).max(axis=1, initial=0.0)  # (S,)
+    return x + step * np.minimum(1.0, size / np.maximum(longest, 1e-30))[:, None, None]
 
 
 def _plate_step(x: NDArray, skin: NDArray, plates: NDArray) -> NDArray:
-    """Skin nodes inside a plate covering them moved onto its surface, along its normal."""
+    """Skin nodes of the shapes ``x`` (S, N, 3) inside a plate (``plates`` (S, 2, 3, 3))
+    covering them moved onto its surface, along its normal."""
+    depth = plate_depth(x, skin, plates)  # (S, 2, K)
     x = x.copy()
-    for plate, depth in zip(plates, plate_depth(x, skin, plates), strict=True):
-        x[skin] += depth[:, None] * plate[NORMAL]
+    for k in range(plates.shape[1]):
+        x[:, skin] += depth[:, k, :, None] * plates[:, k, None, NORMAL]
     return x
