@@ -35,7 +35,7 @@ def untrained(step: str, layers: int, hidden: int) -> tuple[Surrogate, int]:
     """An untrained graph model of ``step`` with ``layers`` blocks of width ``hidden``, and its
     number of parameters."""
     model = MeshGraphModule(step, hidden=hidden, layers=layers, decoder_hidden=hidden).eval()
-    schema = FeatureSchema(step, graph_inputs(step), STEPS[step])
+    schema = FeatureSchema.current(step, graph_inputs(step), STEPS[step])
     n = sum(p.numel() for p in model.parameters())
     return Surrogate(model.name, schema, model.predictor(), graph=True), n
 

@@ -68,41 +68,72 @@ LATERALITY = {"L": 0.0, "R": 1.0}
 STEP_FEATURES = {"unloaded": UNLOADED_FEATURES, "compression": COMPRESSION_FEATURES}
 
 
+#: The revision of each input whose definition changed after models were trained on it; every
+#: other input is at revision 1. A model file stores the revisions it was trained on
+#: (`FeatureSchema.revisions`) and is refused when they are not this code's, because the same
+#: name then carries other numbers. Revision 2 of the plate edges (2026-12-02): the origins of
+#: the plate frames of Trajectory schema 2, in the lower plate's frame.
+REVISIONS: dict[str, int] = {
+    "lower_plate_edge_y": 2,
+    "lower_plate_edge_z": 2,
+    "upper_plate_edge_y": 2,
+    "upper_plate_edge_z": 2,
+}
+
+
+def revisions_of(features: tuple[str, ...]) -> tuple[tuple[str, int], ...]:
+    """This code's revision of each of ``features`` past revision 1, as (name, revision)."""
+    return tuple((f, REVISIONS[f]) for f in features if REVISIONS.get(f, 1) > 1)
+
+
 @dataclass(frozen=True)
 class FeatureSchema:
-    """What a trained model takes: its simulation step, its features in order and the number
-    of recorded steps it was trained on (the trees see the step index as feature 4). Every
-    model file stores it, so a model is never fed features it was not trained on."""
+    """What a trained model takes: its simulation step, its inputs in order, the revision of
+    each input whose definition changed (`REVISIONS`; a file without them was trained on
+    revision 1 of every input) and the number of recorded steps it was trained on (the trees
+    see the step index as feature 4). Every model file stores it, so a model is never fed
+    inputs it was not trained on."""
 
     step: str
     features: tuple[str, ...]
     n_steps: int
+    revisions: tuple[tuple[str, int], ...] = ()
+
+    @classmethod
+    def current(cls, step: str, features: tuple[str, ...], n_steps: int) -> FeatureSchema:
+        """The schema of ``features`` as this code computes them (their `REVISIONS`)."""
+        return cls(step, tuple(features), int(n_steps), revisions_of(tuple(features)))
 
     @classmethod
     def of(cls, step: str, n_steps: int) -> FeatureSchema:
-        """This code's schema of ``step`` with ``n_steps`` recorded steps."""
+        """This code's schema of the paper features of ``step`` with ``n_steps`` recorded steps."""
         if step not in STEP_FEATURES:
             raise ValueError(f"step must be one of {sorted(STEP_FEATURES)}, got {step!r}")
-        return cls(step, STEP_FEATURES[step], int(n_steps))
+        return cls.current(step, STEP_FEATURES[step], n_steps)
 
     def to_json(self) -> str:
-        return json.dumps(
-            {"step": self.step, "features": list(self.features), "n_steps": self.n_steps}
-        )
+        d = {"step": self.step, "features": list(self.features), "n_steps": self.n_steps}
+        if self.revisions:
+            d["revisions"] = dict(self.revisions)
+        return json.dumps(d)
 
     @classmethod
     def from_json(cls, text: str, source: str = "model") -> FeatureSchema:
         try:
             d = json.loads(text)
-            return cls(str(d["step"]), tuple(str(f) for f in d["features"]), int(d["n_steps"]))
-        except (ValueError, KeyError, TypeError) as exc:
+            revisions = tuple((str(f), int(r)) for f, r in d.get("revisions", {}).items())
+            return cls(
+                str(d["step"]), tuple(str(f) for f in d["features"]), int(d["n_steps"]), revisions
+            )
+        except (ValueError, KeyError, TypeError, AttributeError) as exc:
             raise ValueError(f"{source}: unreadable feature schema {text!r}: {exc}") from exc
 
     def check(
         self, step: str, source: str = "model", expected: tuple[str, ...] | None = None
     ) -> None:
         """Refuse a model trained for another step or on other inputs than this code's: the
-        step's `STEP_FEATURES`, or ``expected`` (a graph model's inputs)."""
+        step's `STEP_FEATURES`, or ``expected`` (a graph model's inputs), at their current
+        `REVISIONS`."""
         if step != self.step:
             raise ValueError(
                 f"{source}: the model predicts the {self.step} step, not the {step} step"
@@ -112,6 +143,15 @@ class FeatureSchema:
             raise ValueError(
                 f"{source}: the model was trained on the features {list(self.features)}, this "
                 f"version computes {list(expected or ())} for the {step} step; retrain it"
+            )
+        stored, now = dict(self.revisions), dict(revisions_of(expected))
+        changed = [f for f in self.features if stored.get(f, 1) != now.get(f, 1)]
+        if changed:
+            revised = ", ".join(f"{f} {stored.get(f, 1)} -> {now.get(f, 1)}" for f in changed)
+            raise ValueError(
+                f"{source}: the model was trained on older definitions of some inputs of the "
+                f"{step} step (revision trained on -> this version's: {revised}; "
+                "datamodules.features.REVISIONS says what changed); retrain it"
             )
 
 

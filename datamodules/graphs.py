@@ -454,7 +454,9 @@ class MeshGraphDataModule(TrajectoryDataModule):
     def schema(self) -> FeatureSchema:
         """The inputs of graph models trained here (`graph_inputs`), with the longest
         trajectory's step count."""
-        return FeatureSchema(self.hparams.step, graph_inputs(self.hparams.step), self.max_steps())
+        return FeatureSchema.current(
+            self.hparams.step, graph_inputs(self.hparams.step), self.max_steps()
+        )
 
     def _loader(self, breasts: list[GraphBreast], shuffle: bool) -> DataLoader:
         return DataLoader(

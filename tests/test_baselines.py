@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from sklearn.ensemble import ExtraTreesRegressor
 
-from datamodules.features import FeatureSchema
+from datamodules.features import REVISIONS, FeatureSchema
 from mammo_net.baselines import (
     fit_ert,
     fit_xgboost,
@@ -87,3 +87,24 @@ def test_model_files_carry_their_feature_schema(tmp_path):
         other.check("unloaded", "xgb.json")
     with pytest.raises(ValueError, match=r"m\.ckpt: unreadable feature schema"):
         FeatureSchema.from_json('{"step": "unloaded"}', "m.ckpt")
+
+
+def test_schema_refuses_inputs_of_an_older_definition(tmp_path):
+    """A model trained before a feature was redefined (`REVISIONS`) is refused, however its
+    names match: a file without revisions was trained on revision 1 of every input."""
+    schema = FeatureSchema.of("compression", 70)
+    assert dict(schema.revisions) == {f: 2 for f in REVISIONS}  # the plate edges, 2026-12-02
+    assert FeatureSchema.from_json(schema.to_json()) == schema
+    schema.check("compression")
+    old = FeatureSchema("compression", schema.features, 70)  # as stored before 2026-12-05
+    assert FeatureSchema.from_json(old.to_json()) == old
+    with pytest.raises(
+        ValueError, match=r"xgb\.json: .*older definitions.*lower_plate_edge_y 1 -> 2.*retrain"
+    ):
+        old.check("compression", "xgb.json")
+    booster = fit_xgboost(*data(), n_estimators=2, max_depth=2, n_jobs=1)
+    with pytest.raises(ValueError, match="older definitions"):
+        xgboost_schema(load_xgboost(save_xgboost(booster, tmp_path / "x.json", old))).check(
+            "compression"
+        )
+    FeatureSchema.of("unloaded", 2).check("unloaded")  # no unloaded-state input was redefined

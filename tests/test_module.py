@@ -11,6 +11,7 @@ from datamodules.features import STEP_FEATURES, FeatureSchema
 from datamodules.trajectories import TrajectoryDataModule
 from mammo_net.models import PAPER_ACTIVATIONS, AttBLSTM
 from mammo_net.module import SurrogateModule, warmup_cosine
+from mammo_net.predictor import load_surrogate
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -37,6 +38,16 @@ def test_the_step_sets_the_features_and_the_paper_activations():
         SurrogateModule("compression").set_feature_normalization(
             np.zeros(11), np.ones(11), FeatureSchema.of("unloaded", 2)
         )
+
+
+def test_committed_compression_checkpoints_are_refused_as_stale():
+    """The Att-BLSTM compression folds in results/ were trained before the plate edges were
+    redefined (`datamodules.features.REVISIONS`): they load, and are refused for prediction."""
+    path = ROOT / "results/cv/att_blstm/compression/fold0/checkpoints/best.ckpt"
+    model = SurrogateModule.from_checkpoint(path)
+    assert model.schema.revisions == ()
+    with pytest.raises(ValueError, match=r"best\.ckpt: .*upper_plate_edge_y 1 -> 2.*retrain"):
+        load_surrogate(path)
 
 
 @pytest.mark.parametrize("step", ["compression", "unloaded"])
