@@ -32,8 +32,8 @@ from numpy.typing import NDArray
 from torch.utils.data import DataLoader, Dataset
 
 from datamodules.features import LATERALITY, FeatureSchema, Normalization, upper_contact
+from datamodules.splits import TISSUES
 from datamodules.trajectories import (
-    TISSUES,
     Breast,
     TrajectoryDataModule,
     cache_meta,
@@ -81,21 +81,14 @@ NODE_STEP_INPUTS = {
     "compression": ("height_above_lower_plate", "depth_below_upper_plate"),
 }
 
-#: The paper cohort's Young's moduli (Pa): the stiffness inputs are log-ratios to them.
+#: The paper cohort's Young's moduli (Pa) of the `TISSUES`: the stiffness inputs are log-ratios
+#: to them.
 REFERENCE_YOUNG = MappingProxyType(
-    {"fat": 1100.0, "gland": 2500.0, "muscle": 6000.0, "skin": 1000.0}
+    dict(zip(TISSUES, (1100.0, 2500.0, 6000.0, 1000.0), strict=True))
 )
 
 #: Per-breast inputs: the simulation's conditions (`Conditions.vector`).
-CONDITION_FEATURES = (
-    "log_young_fat",
-    "log_young_gland",
-    "log_young_muscle",
-    "log_young_skin",
-    "friction",
-    "mlo",
-    "plate_angle_rad",
-)
+CONDITION_FEATURES = (*(f"log_young_{t}" for t in TISSUES), "friction", "mlo", "plate_angle_rad")
 
 
 def graph_inputs(step: str) -> tuple[str, ...]:

@@ -81,17 +81,14 @@ def _check(patients: NDArray, sites: NDArray) -> None:
         raise ValueError("patient ids must be unique (one entry per patient, not per breast)")
 
 
+#: The tissues whose Young's modulus a simulation records (``metadata["simulation"]``) and a
+#: surrogate is conditioned on.
+TISSUES = ("fat", "gland", "muscle", "skin")
+
 #: The conditions ``data.train_conditions`` may bound (the names of
 #: `datamodules.trajectories.recorded_conditions`): Young's moduli in Pa, the friction
 #: coefficient, the mlo plates' angle in degrees (a cc breast satisfies any angle bounds).
-BOUNDED_CONDITIONS = (
-    "young_fat",
-    "young_gland",
-    "young_muscle",
-    "young_skin",
-    "friction",
-    "angle",
-)
+BOUNDED_CONDITIONS = (*(f"young_{t}" for t in TISSUES), "friction", "angle")
 
 
 def check_bounds(

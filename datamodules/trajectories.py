@@ -41,7 +41,7 @@ from datamodules.features import (
     compression_features,
     unloaded_features,
 )
-from datamodules.splits import check_bounds, k_folds, one_fold_split, within_bounds
+from datamodules.splits import TISSUES, check_bounds, k_folds, one_fold_split, within_bounds
 from fem.contract.atomic import atomic_path
 from fem.contract.trajectory import Trajectory
 
@@ -59,9 +59,6 @@ RUN_SETTINGS: dict[str, tuple[type, ...]] = {
     "seed": (int,),
     "train_conditions": (dict, type(None)),
 }
-
-#: The tissues whose Young's moduli a simulation records (``metadata["simulation"]``).
-TISSUES = ("fat", "gland", "muscle", "skin")
 
 #: A trajectory folder given as data: one path, or several.
 DataDir = str | os.PathLike | Sequence[str | os.PathLike]
