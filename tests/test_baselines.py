@@ -98,6 +98,8 @@ def test_schema_refuses_inputs_of_an_older_definition(tmp_path):
     schema.check("compression")
     old = FeatureSchema("compression", schema.features, 70)  # as stored before 2026-12-05
     assert FeatureSchema.from_json(old.to_json()) == old
+    with pytest.raises(ValueError, match=r"m\.ckpt: unreadable feature schema"):
+        FeatureSchema.from_json(old.to_json()[:-1] + ', "revisions": [2]}', "m.ckpt")
     with pytest.raises(
         ValueError, match=r"xgb\.json: .*older definitions.*lower_plate_edge_y 1 -> 2.*retrain"
     ):
