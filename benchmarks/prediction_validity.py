@@ -1,6 +1,7 @@
 """Are a run's predicted shapes physically valid, and what does the validity projection cost
 them? For each model of each run folder (``predictions/<model>.npz``, the validation breasts of
-its split), per breast: inverted elements (signed volume <= 0) over all predicted steps and at
+its split, predicted first from the run's model files where missing, as the report does), per
+breast: inverted elements (signed volume <= 0) over all predicted steps and at
 the last step, skin nodes deeper than 0.5 mm inside a plate (compression), then the same after
 `mammo_net.validity.ValidityProjection` (predict.py's default, or another
 ``--min-volume-ratio``), its wall time and the last
@@ -29,7 +30,7 @@ from fem.contract.quality import signed_volume
 from fem.contract.trajectory import NodeFlag, Trajectory
 from mammo_net.inference import load_predictions
 from mammo_net.metrics import breast_rmse
-from mammo_net.predictor import BreastShapes
+from mammo_net.predictor import BreastShapes, predict_run
 from mammo_net.validity import ValidityProjection
 
 #: Depth inside a plate from which a skin node counts as penetrating, mm (`PhysicalChecks`).
@@ -78,7 +79,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    ap.add_argument("runs", nargs="+", help="train.py run folders with predictions/")
+    ap.add_argument("runs", nargs="+", help="train.py run folders (predictions/ or model files)")
     ap.add_argument("--limit", type=int, default=None, help="the first breasts only")
     ap.add_argument("--out", type=Path, default=None, help="per-breast rows as JSON")
     ap.add_argument(
@@ -95,6 +96,7 @@ def main() -> None:
     )
     print("| --- | --- | --- | --- | --- | --- | --- | --- |")
     for run in map(Path, args.runs):
+        predict_run(run)  # the missing predictions/<model>.npz, from the run's model files
         dm = TrajectoryDataModule.from_run(run)
         step = dm.hparams.step
         for file in sorted((run / "predictions").glob("*.npz")):
