@@ -99,6 +99,23 @@ def test_nodes_inside_a_plate_come_out_and_held_directions_hold(block):
     assert (signed_volume(out.points, t) / signed_volume(p, t)).min() >= 0.05
 
 
+def test_a_node_nearer_the_plate_edge_leaves_behind_it(block):
+    """The upper plate covers y >= 9.5 and reaches 2 mm into the cube: the top nodes at y = 10
+    are 0.5 mm in front of its chest-side edge face and 2 mm under its surface, so they leave
+    behind the edge face (tissue bulging out behind the plate), not down onto the surface."""
+    p, t = block
+    plates = cc_plates([-1.0, -1.0], [9.5, 8.0])
+    skin = np.flatnonzero((p == 0).any(axis=1) | (p == 10).any(axis=1))
+    out = project_valid(t, p, p, skin, plates, min_volume_ratio=0.05)
+    edge_row = (p[:, 1] == 10) & (p[:, 2] == 10)
+    assert edge_row.sum() == 6
+    back = 0.5 + projection.EDGE_CLEARANCE
+    np.testing.assert_allclose(out.points[edge_row], p[edge_row] - [0.0, back, 0.0], atol=1e-9)
+    assert not covered(out.points[edge_row].astype(np.float32), plates[1]).any()  # as written
+    np.testing.assert_array_equal(out.points[~edge_row], p[~edge_row])
+    assert out.moved_max_mm == pytest.approx(back) and out.max_penetration_mm == 0.0
+
+
 @pytest.mark.parametrize("stall_sweeps", [projection.STALL_SWEEPS, 3])
 def test_the_steps_of_a_trajectory_project_together_as_each_alone(block, monkeypatch, stall_sweeps):
     """`project_steps` sweeps all the invalid steps at once; each must come out as `project`
