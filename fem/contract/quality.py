@@ -3,6 +3,7 @@ boundary faces."""
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 import skfem
 from numpy.typing import NDArray
@@ -16,10 +17,16 @@ EDGE_FACES = np.array([[2, 3], [1, 3], [1, 2], [0, 3], [0, 2], [0, 1]])
 def signed_volume(points: NDArray, cells: NDArray) -> NDArray[np.float64]:
     """Signed volume of each tetrahedron, ``det[x1-x0, x2-x0, x3-x0] / 6``.
 
+    A compiled loop (`_signed_volumes`): the validity projection checks every element of every
+    recorded step, and NumPy's gathers of (steps, elements) vertex arrays took 20 ms where
+    this takes 0.6 ms (70 steps of a 2175-element breast), with the same arithmetic in the
+    same order (equal to the last bit, `tests/test_quality.py`).
+
     Parameters
     ----------
     points : (..., N, 3) float
-        Node coordinates, mm (several shapes of the mesh at once: leading axes).
+        Node coordinates, mm (several shapes of the mesh at once: leading axes), computed in
+        float64.
     cells : (E, 4) int
         Node indices.
 
@@ -27,12 +34,36 @@ def signed_volume(points: NDArray, cells: NDArray) -> NDArray[np.float64]:
     -------
     (..., E) float64
         Volume in mm^3, positive for the right-handed vertex order.
+
+    Raises
+    ------
+    IndexError
+        A cell names a node that ``points`` does not have.
     """
-    q = np.moveaxis(np.asarray(points), -1, 0)  # (3, ..., N): one contiguous gather per axis
-    x0 = q[..., cells[:, 0]]
-    a, b, c = (q[..., cells[:, k]] - x0 for k in (1, 2, 3))  # (3, ..., E) each
-    cross = (b[1] * c[2] - b[2] * c[1], b[2] * c[0] - b[0] * c[2], b[0] * c[1] - b[1] * c[0])
-    return (a[0] * cross[0] + a[1] * cross[1] + a[2] * cross[2]) / 6.0
+    p = np.asarray(points, np.float64)
+    q = np.ascontiguousarray(p.reshape(-1, *p.shape[-2:]))  # (S, N, 3)
+    c = np.ascontiguousarray(cells, np.int64).reshape(-1, 4)
+    if c.size and (c.min() < 0 or c.max() >= q.shape[1]):
+        raise IndexError(f"cells name nodes {c.min()}..{c.max()}, the shape has {q.shape[1]}")
+    return _signed_volumes(q, c).reshape(*p.shape[:-2], len(c))
+
+
+@numba.njit(cache=True)
+def _signed_volumes(q: NDArray, cells: NDArray) -> NDArray:  # pragma: no cover (compiled)
+    """``det[x1-x0, x2-x0, x3-x0] / 6`` of the cells (E, 4) in each shape of ``q`` (S, N, 3),
+    (S, E): the NumPy formula's operations, element by element."""
+    out = np.empty((q.shape[0], cells.shape[0]))
+    for s in range(q.shape[0]):
+        x = q[s]
+        for e in range(cells.shape[0]):
+            i, j, k, m = cells[e, 0], cells[e, 1], cells[e, 2], cells[e, 3]
+            a0, a1, a2 = x[j, 0] - x[i, 0], x[j, 1] - x[i, 1], x[j, 2] - x[i, 2]
+            b0, b1, b2 = x[k, 0] - x[i, 0], x[k, 1] - x[i, 1], x[k, 2] - x[i, 2]
+            c0, c1, c2 = x[m, 0] - x[i, 0], x[m, 1] - x[i, 1], x[m, 2] - x[i, 2]
+            out[s, e] = (
+                a0 * (b1 * c2 - b2 * c1) + a1 * (b2 * c0 - b0 * c2) + a2 * (b0 * c1 - b1 * c0)
+            ) / 6.0
+    return out
 
 
 def mesh_edges(cells: NDArray) -> NDArray[np.int64]:
