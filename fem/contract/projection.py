@@ -157,6 +157,8 @@ class Constraints:
         element asks of a vertex.
     free : (N, 3, 3) float64
         Per node, the projector onto the directions it may move in (`free_projectors`).
+    limited : (L,) int64
+        The nodes with a held direction (whose ``free`` is not the identity).
     edges : (2, 2M) int64
         The mesh's directed edges (`fem.contract.quality.mesh_edges`): the neighbours a
         stalled patch is smoothed towards.
@@ -178,6 +180,7 @@ class Constraints:
     target: NDArray[np.float64]
     size: NDArray[np.float64]
     free: NDArray[np.float64]
+    limited: NDArray[np.int64]
     edges: NDArray[np.int64]
     skin: NDArray[np.int64] | None
     volume_change: tuple[float, float] | None
@@ -186,8 +189,13 @@ class Constraints:
     min_volume_ratio: float
 
     def held(self, points: NDArray) -> NDArray[np.float64]:
-        """``points`` (..., N, 3) with their displacement along the held directions removed."""
-        return self.reference + np.einsum("nij,...nj->...ni", self.free, points - self.reference)
+        """``points`` (..., N, 3) with their displacement along the held directions removed
+        (a copy; only the `limited` nodes change)."""
+        x, k = np.array(points, np.float64), self.limited
+        x[..., k, :] = self.reference[k] + np.einsum(
+            "nij,...nj->...ni", self.free[k], x[..., k, :] - self.reference[k]
+        )
+        return x
 
     def measure(
         self, x: NDArray, plates: NDArray | None, volume: NDArray | None = None
@@ -255,13 +263,15 @@ def constraints(
     volume = signed_volume(reference, cells)
     if (volume <= 0).any():
         raise ValueError(f"{int((volume <= 0).sum())} reference elements are not right-handed")
+    free = free_projectors(len(reference), held)
     return Constraints(
         cells=cells,
         reference=reference,
         volume=volume,
         target=min_volume_ratio * volume,
         size=np.cbrt(6 * np.sqrt(2) * volume),
-        free=free_projectors(len(reference), held),
+        free=free,
+        limited=np.flatnonzero(np.abs(free - np.eye(3)).max(axis=(1, 2), initial=0.0) > 0),
         edges=mesh_edges(cells),
         skin=None if skin is None else np.asarray(skin, np.int64),
         volume_change=volume_change,
