@@ -4,8 +4,8 @@ its split, predicted first from the run's model files where missing, as the repo
 breast: inverted elements (signed volume <= 0) over all predicted steps and at
 the last step, skin nodes deeper than 0.5 mm inside a plate (compression), then the same after
 `mammo_net.validity.ValidityProjection` (predict.py's default, or another
-``--min-volume-ratio``), its wall time and the last
-step's RMSE against the FE before and after it.
+``--min-volume-ratio``), its wall time and the RMSE
+against the FE (all recorded steps and the last one) before and after it.
 
     python benchmarks/prediction_validity.py results/cv/mesh_gnn/compression/fold0 \
         results/cv/xgboost/compression/fold0 --out /tmp/validity.json
@@ -92,9 +92,9 @@ def main() -> None:
     print(
         "| run | model | breasts | with inverted elements, before / after | inverted, all steps,"
         " before / after | penetrating skin nodes, before / after | projection (ms, median)"
-        " | last-step RMSE before / after (mm, mean) |"
+        " | all-steps RMSE before / after (mm, mean) | last-step RMSE before / after (mm, mean) |"
     )
-    print("| --- | --- | --- | --- | --- | --- | --- | --- |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     for run in map(Path, args.runs):
         predict_run(run)  # the missing predictions/<model>.npz, from the run's model files
         dm = TrajectoryDataModule.from_run(run)
@@ -113,7 +113,7 @@ def main() -> None:
                 after = projected.unloaded if step == "unloaded" else projected.compressed[0]
                 before = shapes.unloaded if step == "unloaded" else shapes.compressed[0]
                 rmse = [
-                    breast_rmse(x.transpose(1, 0, 2), truth.transpose(1, 0, 2))["last_step"]
+                    breast_rmse(x.transpose(1, 0, 2), truth.transpose(1, 0, 2))
                     for x in (before, after)
                 ]
                 model_rows.append(
@@ -124,7 +124,8 @@ def main() -> None:
                         "before": violations(traj, step, shapes),
                         "after": violations(traj, step, projected),
                         "projection_s": seconds,
-                        "rmse_last_step_mm": rmse,
+                        "rmse_all_steps_mm": [r["all_steps"] for r in rmse],
+                        "rmse_last_step_mm": [r["last_step"] for r in rmse],
                     }
                 )
             rows += model_rows
@@ -136,13 +137,14 @@ def main() -> None:
                 return sum(r[when]["inverted_all_steps"] > 0 for r in rows)
 
             ms = 1e3 * statistics.median(r["projection_s"] for r in model_rows)
-            rmse = np.mean([r["rmse_last_step_mm"] for r in model_rows], axis=0)
+            every = np.mean([r["rmse_all_steps_mm"] for r in model_rows], axis=0)
+            last = np.mean([r["rmse_last_step_mm"] for r in model_rows], axis=0)
             print(
                 f"| {run} | {file.stem} | {len(model_rows)} | {breasts('before')} / "
                 f"{breasts('after')} | {total('before', 'inverted_all_steps')} / "
                 f"{total('after', 'inverted_all_steps')} | "
                 f"{total('before', 'penetrating_nodes')} / {total('after', 'penetrating_nodes')}"
-                f" | {ms:.0f} | {rmse[0]:.3f} / {rmse[1]:.3f} |",
+                f" | {ms:.0f} | {every[0]:.3f} / {every[1]:.3f} | {last[0]:.3f} / {last[1]:.3f} |",
                 flush=True,
             )
     if args.out:
