@@ -317,14 +317,16 @@ def write_report(
     out_dir: str | Path,
     analysis: DictConfig,
     data_dir: str | Path | None = None,
+    exclude: Iterable[str | Path] = (),
 ) -> Path:
-    """Compute, tabulate and draw everything for the run folders ``runs`` into ``out_dir``,
-    with the settings ``analysis`` (``conf/analysis``); returns ``out_dir``.
+    """Compute, tabulate and draw everything for the run folders ``runs`` (less those of
+    ``exclude``) into ``out_dir``, with the settings ``analysis`` (``conf/analysis``); returns
+    ``out_dir``.
 
     Every run folder, predictions file and trajectory is read, and ``out_dir`` checked, before
     the first file is written (`mammo_net.report_data.collect`)."""
     writable_folder(out_dir)
-    evaluations = collect(runs, data_dir)
+    evaluations = collect(runs, data_dir, exclude)
     if analysis.get("common_breasts"):
         for e in evaluations:
             keep_common_breasts(e)
@@ -369,7 +371,7 @@ def write_report(
 
 @hydra.main(config_path=CONFIG_DIR, config_name="report", version_base="1.3")
 def main(cfg: DictConfig) -> None:
-    out = write_report(cfg.runs, cfg.out_dir, cfg.analysis, cfg.data_dir)
+    out = write_report(cfg.runs, cfg.out_dir, cfg.analysis, cfg.data_dir, cfg.exclude)
     print((out / "report.md").read_text())
 
 

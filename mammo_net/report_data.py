@@ -100,7 +100,11 @@ def run_settings(
     return label, str(hp.step), dm
 
 
-def collect(runs: Iterable[str | Path], data_dir: DataDir | None = None) -> list[Evaluation]:
+def collect(
+    runs: Iterable[str | Path],
+    data_dir: DataDir | None = None,
+    exclude: Iterable[str | Path] = (),
+) -> list[Evaluation]:
     """Merge the predictions of run folders by (split, step) and score them against the FE.
 
     Parameters
@@ -110,11 +114,21 @@ def collect(runs: Iterable[str | Path], data_dir: DataDir | None = None) -> list
     data_dir
         The trajectory folder, or folders (breasts named as `TrajectoryDataModule.sources`
         names them); by default each run's own ``data.data_dir``.
+    exclude
+        Run folders (glob patterns allowed) left out of ``runs``.
     """
     patterns = [str(pattern) for pattern in runs]
-    folders = [Path(p) for pattern in patterns for p in sorted(glob.glob(pattern))]
+    left_out = {Path(p).resolve() for pattern in exclude for p in glob.glob(str(pattern))}
+    folders = [
+        Path(p)
+        for pattern in patterns
+        for p in sorted(glob.glob(pattern))
+        if Path(p).resolve() not in left_out
+    ]
     if not folders:
-        raise FileNotFoundError(f"runs: no run folder matches {patterns}")
+        raise FileNotFoundError(
+            f"runs: no run folder matches {patterns} (exclude: {[str(e) for e in exclude]})"
+        )
     evaluations: dict[tuple[str, str], Evaluation] = {}
     for run in folders:
         split, step, dm = run_settings(run, data_dir)

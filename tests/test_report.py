@@ -210,6 +210,18 @@ def test_report_names_file_and_field_of_a_wrong_shape(cohort):
         collect([cohort / "*"])
 
 
+def test_excluded_runs_are_left_out(cohort):
+    (e,) = [
+        e for e in collect([cohort / "*"], exclude=[cohort / "fold1"]) if e.step == "compression"
+    ]
+    assert sorted(e.models["model"].errors) == ["P0000_L", "P0001_L"]  # fold 0's breasts only
+    assert [e.step for e in collect([cohort / "*"], exclude=[cohort / "fold*"])] == ["unloaded"]
+    with pytest.raises(
+        FileNotFoundError, match=r"no run folder matches .*\(exclude: \[.*runs/\*.\]\)"
+    ):
+        collect([cohort / "fold*"], exclude=[cohort / "*"])
+
+
 def test_report_needs_run_folders(tmp_path):
     with pytest.raises(FileNotFoundError, match="no run folder matches"):
         collect([tmp_path / "nothing*"])
@@ -252,5 +264,7 @@ def test_report_command_config_composes(cohort, tmp_path):
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
         cfg = compose("report", overrides=[f"runs=[{cohort}/*]", f"out_dir={tmp_path / 'r'}"])
     assert cfg.runs == [f"{cohort}/*"] and cfg.data_dir is None
+    assert cfg.exclude == ["results/cv/att_blstm/*/fold*"]  # the stale folds (docs/results.md)
     assert cfg.analysis.linear_fit_max_ratio == 0.53 and cfg.analysis.ratio_of_interest == 0.2
-    assert (write_report(cfg.runs, cfg.out_dir, cfg.analysis, cfg.data_dir) / "report.md").exists()
+    out = write_report(cfg.runs, cfg.out_dir, cfg.analysis, cfg.data_dir, cfg.exclude)
+    assert (out / "report.md").exists()
