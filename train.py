@@ -3,6 +3,7 @@
     python train.py                                   # embedded default: small cohort, minutes
     python train.py experiment=paper_compression      # the paper's run on the 516-breast cohort
     python train.py -m experiment=paper_compression data.fold=0,1,2,3,4,5,6,7,8,9
+    python train.py -m experiment=[paper_compression,cv_att_blstm] data.fold=3 ckpt_path=last  # resume
 
 Writes TensorBoard logs, checkpoints, the baselines' model files, the validation breasts'
 predictions, ``results.md`` (the side-by-side table, also printed) and the evaluation report
@@ -37,6 +38,26 @@ def ensure_cohort(cfg: DictConfig) -> None:
         run_cohort(cfg.cohort)
 
 
+def resume_from(cfg: DictConfig) -> str | None:
+    """The checkpoint an interrupted fit resumes from (``ckpt_path``): ``last`` is the run
+    folder's ``checkpoints/last.ckpt`` when it exists (a first run starts from scratch).
+
+    Raises
+    ------
+    FileNotFoundError
+        ``ckpt_path`` names a file that does not exist.
+    """
+    if cfg.ckpt_path is None:
+        return None
+    if cfg.ckpt_path == "last":
+        last = Path(cfg.run_dir) / "checkpoints" / "last.ckpt"
+        return str(last) if last.exists() else None
+    path = Path(to_absolute_path(str(cfg.ckpt_path)))
+    if not path.is_file():
+        raise FileNotFoundError(f"ckpt_path: {path}: no such checkpoint")
+    return str(path)
+
+
 def logged(trainer: L.Trainer, baselines: list[TreeBaseline]) -> dict[str, float]:
     """Every metric of the run so far: the network's and the baselines'."""
     out = {k: float(v) for k, v in trainer.callback_metrics.items()}
@@ -52,6 +73,7 @@ def train(cfg: DictConfig) -> float:
     the features cached or anything written. The data folders are opened relative to the
     folder train.py starts in (``hydra.job.chdir`` is false) and recorded as written."""
     writable_folder(cfg.run_dir)
+    resume = resume_from(cfg)
     L.seed_everything(cfg.seed, workers=True)
     dm = instantiate(cfg.data)
     model: NetworkModule = instantiate(cfg.model)
@@ -66,7 +88,7 @@ def train(cfg: DictConfig) -> float:
     logger = instantiate(cfg.logger) if cfg.get("logger") else False
     trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=logger)
     start = time.perf_counter()
-    trainer.fit(model, dm)
+    trainer.fit(model, dm, ckpt_path=resume, weights_only=True)
     network = (
         time.perf_counter() - start - sum(c.results[f"{c.name}/fit_seconds"] for c in baselines)
     )

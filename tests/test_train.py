@@ -168,7 +168,7 @@ def test_cross_validation_configs_instantiate(step, cv, tmp_path):
     assert cfg.hydra.sweeper.params["data.fold"].startswith("range(0, 10)")
     assert cfg.hydra.sweep.dir == f"results/cv/{cv[3:]}/{step}"  # committed model files
     callbacks = [instantiate(c) for c in cfg.callbacks.values() if c and "_target_" in c]
-    assert len(callbacks) == 1
+    assert len(callbacks) == (1 if cv == "cv_xgboost" else 2)  # the network's: + resume state
     dm, model = instantiate(cfg.data), instantiate(cfg.model)
     assert dm.hparams.step == step and dm.hparams.fold == 4
     assert model.n_features == (22 if step == "compression" else 11)
@@ -223,6 +223,37 @@ def test_train_the_unloaded_step(trajectory_folder, tmp_path):
     model = SurrogateModule.from_checkpoint(tmp_path / "checkpoints" / "last.ckpt")
     assert model.schema == FeatureSchema.of("unloaded", 2)  # tiny trajectories: 2 steps
     assert model.hparams.activations == PAPER_ACTIVATIONS["unloaded"]
+
+
+def test_an_interrupted_fit_resumes_from_the_last_checkpoint(
+    trajectory_folder, tmp_path, monkeypatch
+):
+    """``ckpt_path=last``: a fold folder's fit goes on from its checkpoints/last.ckpt (the
+    optimizer, the schedule and the epoch counter with it); a first run starts from scratch."""
+    steps = []
+    training_step = NetworkModule.training_step
+    monkeypatch.setattr(
+        NetworkModule, "training_step", lambda self, *a: steps.append(1) or training_step(self, *a)
+    )
+    common = (
+        f"run_dir={tmp_path}",
+        f"data.data_dir={trajectory_folder}",
+        "callbacks=model_checkpoint",
+        "test=false",
+        "report=false",
+        *TINY,
+    )
+    last = tmp_path / "checkpoints" / "last.ckpt"
+    train.train(_cfg(*common, "ckpt_path=last", "trainer.max_epochs=1"))  # none yet: from scratch
+    first = torch.load(last, weights_only=True)
+    assert first["epoch"] == 0 and first["global_step"] > 0
+    assert len(steps) == first["global_step"]
+    train.train(_cfg(*common, "ckpt_path=last", "trainer.max_epochs=2"))
+    resumed = torch.load(last, weights_only=True)
+    assert resumed["epoch"] == 1 and resumed["global_step"] == 2 * first["global_step"]
+    assert len(steps) == 2 * first["global_step"]  # one more epoch, not two from scratch
+    with pytest.raises(FileNotFoundError, match=r"ckpt_path: .*nowhere\.ckpt: no such checkpoint"):
+        train.train(_cfg(*common, f"ckpt_path={tmp_path / 'nowhere.ckpt'}"))
 
 
 def _run_train(tmp_path, trajectory_folder, *overrides, multirun=False):
@@ -310,8 +341,10 @@ def test_cross_validation_sweeps_feed_the_report(trajectory_folder, tmp_path):
     ]
     # A fold kept as committed files (model files, no predictions) is predicted again.
     fold0 = tmp_path / "results/cv/att_blstm/compression/fold0"
-    assert sorted(p.name for p in (fold0 / "checkpoints").iterdir()) == ["best.ckpt"]
+    assert sorted(p.name for p in (fold0 / "checkpoints").iterdir()) == ["best.ckpt", "last.ckpt"]
     assert "optimizer_states" not in torch.load(fold0 / "checkpoints/best.ckpt", weights_only=True)
+    # last.ckpt (gitignored) is the fold's resume state: ckpt_path=last
+    assert "optimizer_states" in torch.load(fold0 / "checkpoints/last.ckpt", weights_only=True)
     kept = {
         model: tmp_path / f"results/cv/{model}/compression/fold0/predictions/{model}.npz"
         for model in ("att_blstm", "xgboost")
@@ -351,7 +384,11 @@ def test_graph_model_configs_instantiate(step, cv, tmp_path):
     settings = {k: v for k, v in cfg.model.items() if k not in ("_target_", "step")}
     assert set(settings) == set(signature_defaults(type(model)))
     callbacks = [instantiate(c) for c in cfg.callbacks.values() if c and "_target_" in c]
-    assert [type(c).__name__ for c in callbacks] == ["ModelCheckpoint"]
+    assert [type(c).__name__ for c in callbacks] == ["ModelCheckpoint"] * (2 if cv else 1)
+    if cv:  # the model's weights, and the resume state (`ckpt_path=last`)
+        best, last = callbacks
+        assert best.save_weights_only and best.save_top_k == 1 and not best.save_last
+        assert not last.save_weights_only and last.save_top_k == 0 and last.save_last
 
 
 @pytest.mark.parametrize("trainer", [(), ("trainer=gpu", "trainer.accelerator=cpu")])
