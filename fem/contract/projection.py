@@ -298,17 +298,14 @@ def project(c: Constraints, points: NDArray, plates: NDArray | None = None) -> P
         raise ValueError(f"points {x0.shape} and reference {c.reference.shape} must both be (N, 3)")
     if (plates is None) != (c.skin is None):
         raise ValueError("plates and skin go together")
-    out = _jacobi_sweeps(
-        c, c.held(x0)[None], None if plates is None else np.asarray(plates, np.float64)[None]
-    )
+    out = project_steps(c, x0[None], None if plates is None else np.asarray(plates)[None])
     if out.failed:
         raise ProjectionFailed(out.failed[0])
-    moved = np.linalg.norm(out.points[0] - x0, axis=-1)
     return Projection(
         points=out.points[0],
         sweeps=int(out.sweeps[0]),
-        moved_rms_mm=float(np.sqrt(np.mean(moved**2))),
-        moved_max_mm=float(moved.max(initial=0.0)),
+        moved_rms_mm=float(out.moved_rms_mm[0]),
+        moved_max_mm=float(out.moved_max_mm[0]),
         min_volume_ratio=float(out.min_volume_ratio[0]),
         volume_change=float(out.volume_change[0]),
         max_penetration_mm=float(out.max_penetration_mm[0]),
@@ -386,8 +383,9 @@ class StepProjections:
         Jacobi sweeps per step (0: valid once the held directions were removed).
     moved_rms_mm, moved_max_mm : (T,) float
         RMS and largest node displacement from the input, mm.
-    min_volume_ratio : (T,) float
-        Smallest ``V_e / V_e(reference)`` per step.
+    min_volume_ratio, volume_change, max_penetration_mm : (T,) float
+        Smallest ``V_e / V_e(reference)``, ``V / V(reference) - 1`` and deepest skin node
+        inside a plate (mm) of each step (a failed step's: its input's).
     failed : dict[int, str]
         The steps no valid shape was found for, with why.
     """
@@ -397,6 +395,8 @@ class StepProjections:
     moved_rms_mm: NDArray[np.float64]
     moved_max_mm: NDArray[np.float64]
     min_volume_ratio: NDArray[np.float64]
+    volume_change: NDArray[np.float64]
+    max_penetration_mm: NDArray[np.float64]
     failed: dict[int, str]
 
 
@@ -414,45 +414,11 @@ def project_steps(c: Constraints, steps: NDArray, plates: NDArray | None = None)
         raise ValueError(f"steps {x0.shape} must be (T, {len(c.reference)}, 3)")
     if (plates is None) != (c.skin is None):
         raise ValueError("plates and skin go together")
-    out = _jacobi_sweeps(c, c.held(x0), None if plates is None else np.asarray(plates, np.float64))
-    moved = np.linalg.norm(out.points - x0, axis=-1)  # (T, N)
-    return StepProjections(
-        points=out.points,
-        sweeps=out.sweeps,
-        moved_rms_mm=np.sqrt(np.mean(moved**2, axis=1)),
-        moved_max_mm=moved.max(axis=1, initial=0.0),
-        min_volume_ratio=out.min_volume_ratio,
-        failed=out.failed,
-    )
+    return _jacobi_sweeps(c, x0, None if plates is None else np.asarray(plates, np.float64))
 
 
-@dataclass(frozen=True)
-class _Sweeps:
-    """Shapes after `_jacobi_sweeps`; a failed shape's entries are its input's.
-
-    Attributes
-    ----------
-    points : (T, N, 3) float64
-        The valid shapes, mm.
-    sweeps : (T,) int64
-        Jacobi sweeps per shape (0: valid as given; also a failed shape's).
-    min_volume_ratio, volume_change, max_penetration_mm : (T,) float64
-        Smallest ``V_e / V_e(reference)``, ``V / V(reference) - 1`` and deepest skin node
-        inside a plate (mm) of each shape.
-    failed : dict[int, str]
-        The shapes still invalid after ``max_sweeps`` sweeps, with what still fails.
-    """
-
-    points: NDArray[np.float64]
-    sweeps: NDArray[np.int64]
-    min_volume_ratio: NDArray[np.float64]
-    volume_change: NDArray[np.float64]
-    max_penetration_mm: NDArray[np.float64]
-    failed: dict[int, str]
-
-
-def _jacobi_sweeps(c: Constraints, x: NDArray, plates: NDArray | None) -> _Sweeps:
-    """Jacobi sweeps of the shapes ``x`` (T, N, 3), held directions removed, each with its own
+def _jacobi_sweeps(c: Constraints, x0: NDArray, plates: NDArray | None) -> StepProjections:
+    """The shapes ``x0`` (T, N, 3), held directions removed, in Jacobi sweeps, each with its own
     ``plates`` (T, 2, 3, 3) (None when ``c`` has no skin nodes), until it satisfies ``c``.
 
     Every sweep measures the shapes still invalid and moves them all (`_sweep`); a shape leaves
@@ -460,6 +426,7 @@ def _jacobi_sweeps(c: Constraints, x: NDArray, plates: NDArray | None) -> _Sweep
     own stall count: after `STALL_SWEEPS` sweeps without fewer violated elements it takes a
     smoothing step instead of the elements' requests, as it would alone.
     """
+    x = c.held(x0)
     volume, total, contact, deep = c.measure(x, plates)
     sweeps = np.zeros(len(x), np.int64)
     ratio, change, deepest = (volume / c.volume).min(axis=1), total.copy(), deep.copy()
@@ -502,7 +469,17 @@ def _jacobi_sweeps(c: Constraints, x: NDArray, plates: NDArray | None) -> _Sweep
         stall = stalled >= STALL_SWEEPS  # requests that cancel: unfold the patch
         before, y = y, _sweep(c, y, p, volume, total, contact, bad, off, stall)
         fewest[stall], stalled[stall] = np.inf, 0
-    return _Sweeps(out, sweeps, ratio, change, deepest, failed)
+    moved = np.linalg.norm(out - x0, axis=-1)  # (T, N)
+    return StepProjections(
+        points=out,
+        sweeps=sweeps,
+        moved_rms_mm=np.sqrt(np.mean(moved**2, axis=1)),
+        moved_max_mm=moved.max(axis=1, initial=0.0),
+        min_volume_ratio=ratio,
+        volume_change=change,
+        max_penetration_mm=deepest,
+        failed=failed,
+    )
 
 
 def _sweep(
