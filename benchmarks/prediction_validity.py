@@ -31,28 +31,10 @@ from fem.contract.trajectory import NodeFlag, Trajectory
 from mammo_net.inference import load_predictions
 from mammo_net.metrics import breast_rmse
 from mammo_net.predictor import BreastShapes, predict_run
-from mammo_net.validity import ValidityProjection
+from mammo_net.validity import ValidityProjection, step_shapes
 
 #: Depth inside a plate from which a skin node counts as penetrating, mm (`PhysicalChecks`).
 PLATE_TOLERANCE_MM = 0.5
-
-
-def shapes_of(traj: Trajectory, step: str, predicted: np.ndarray) -> BreastShapes:
-    """A breast's predicted steps (T, N, 3) of ``step`` as `BreastShapes`, the other step's
-    shapes (and the plates) from the FE."""
-    if step == "unloaded":
-        compressed, plates, ratio = traj.compressed, traj.plates, traj.compression_ratio
-        unloaded = predicted
-    else:
-        compressed, plates, ratio = predicted, traj.plates, traj.compression_ratio
-        unloaded = traj.unloaded
-    return BreastShapes(
-        unloaded.astype(np.float32),
-        compressed[None].astype(np.float32),
-        plates[None],
-        ratio[None],
-        np.array([float(traj.metadata["simulation"]["compressed_thickness_mm"])]),
-    )
 
 
 def violations(traj: Trajectory, step: str, shapes: BreastShapes) -> dict[str, int]:
@@ -106,7 +88,7 @@ def main() -> None:
             for name in names:
                 traj = Trajectory.load(dm.source(name))
                 truth = traj.unloaded if step == "unloaded" else traj.compressed
-                shapes = shapes_of(traj, step, predictions[name].transpose(1, 0, 2))
+                shapes = step_shapes(traj, step, predictions[name].transpose(1, 0, 2))
                 start = time.perf_counter()
                 projected, _ = projection(traj, shapes)
                 seconds = time.perf_counter() - start

@@ -18,11 +18,13 @@ from __future__ import annotations
 import csv
 import json
 from collections.abc import Callable, Iterable, Sequence
+from dataclasses import asdict
 from itertools import combinations
 from pathlib import Path
 
 import hydra
 import numpy as np
+from hydra.utils import instantiate
 from numpy.typing import NDArray
 from omegaconf import DictConfig
 
@@ -39,6 +41,7 @@ from mammo_net.report_data import (
     collect,
     ratio_curve,
 )
+from mammo_net.validity import ValidityProjection
 
 
 def breast_errors(result: ModelResult, truth: dict[str, BreastTruth]) -> dict[str, dict]:
@@ -213,7 +216,15 @@ def markdown(evaluations: list[Evaluation], numbers: dict, analysis: DictConfig)
     """Every table of the report, in markdown."""
     s, fits, r = numbers["summary"], numbers["compression_ratio"], analysis.ratio_of_interest
     sections = [
-        "# Evaluation report\n\nPer-breast RMSE (equation 2) of every model against the FE, mm.",
+        "# Evaluation report\n\nPer-breast RMSE (equation 2) of every model against the FE, mm, "
+        + (
+            "of the predictions as predicted (no projection)."
+            if numbers.get("projection") is None
+            else "of the predictions after the validity projection, as predict.py writes them "
+            "(`mammo_net.validity.ValidityProjection`: "
+            + ", ".join(f"{k} {v:g}" for k, v in numbers["projection"].items())
+            + ")."
+        ),
         "## Per-breast RMSE (paper Tables 3, 4, 7): (mean, median) +- std, mm",
         _table(
             evaluations,
@@ -318,20 +329,22 @@ def write_report(
     analysis: DictConfig,
     data_dir: str | Path | None = None,
     exclude: Iterable[str | Path] = (),
+    projection: ValidityProjection | None = None,
 ) -> Path:
     """Compute, tabulate and draw everything for the run folders ``runs`` (less those of
-    ``exclude``) into ``out_dir``, with the settings ``analysis`` (``conf/analysis``); returns
-    ``out_dir``.
+    ``exclude``) into ``out_dir``, with the settings ``analysis`` (``conf/analysis``), scoring
+    the predictions after ``projection`` (None: as predicted); returns ``out_dir``.
 
     Every run folder, predictions file and trajectory is read, and ``out_dir`` checked, before
     the first file is written (`mammo_net.report_data.collect`)."""
     writable_folder(out_dir)
-    evaluations = collect(runs, data_dir, exclude)
+    evaluations = collect(runs, data_dir, exclude, projection)
     if analysis.get("common_breasts"):
         for e in evaluations:
             keep_common_breasts(e)
     out = Path(out_dir)
     numbers = compute(evaluations, analysis)
+    numbers["projection"] = None if projection is None else asdict(projection)
     breast_rows, step_rows = [], []
     for e in evaluations:
         for m, r in e.models.items():
@@ -371,7 +384,8 @@ def write_report(
 
 @hydra.main(config_path=CONFIG_DIR, config_name="report", version_base="1.3")
 def main(cfg: DictConfig) -> None:
-    out = write_report(cfg.runs, cfg.out_dir, cfg.analysis, cfg.data_dir, cfg.exclude)
+    projection = instantiate(cfg.projection) if cfg.projection else None
+    out = write_report(cfg.runs, cfg.out_dir, cfg.analysis, cfg.data_dir, cfg.exclude, projection)
     print((out / "report.md").read_text())
 
 

@@ -19,6 +19,7 @@ from mammo_net import evaluation as ev
 from mammo_net.inference import load_prediction_seconds, load_predictions
 from mammo_net.metrics import node_rmse
 from mammo_net.predictor import RUN_MODELS, predict_run
+from mammo_net.validity import ValidityProjection
 
 #: Pure-tissue node codes (interface nodes, whose code has several bits, are left out).
 TISSUE_CODES = {t.name.lower(): TISSUE_BIT[t] for t in (Tissue.FAT, Tissue.GLAND, Tissue.MUSCLE)}
@@ -104,6 +105,7 @@ def collect(
     runs: Iterable[str | Path],
     data_dir: DataDir | None = None,
     exclude: Iterable[str | Path] = (),
+    projection: ValidityProjection | None = None,
 ) -> list[Evaluation]:
     """Merge the predictions of run folders by (split, step) and score them against the FE.
 
@@ -116,6 +118,9 @@ def collect(
         names them); by default each run's own ``data.data_dir``.
     exclude
         Run folders (glob patterns allowed) left out of ``runs``.
+    projection
+        Applied to every predicted trajectory before it is scored, as ``predict.py`` applies
+        it (`ValidityProjection.project_step`); None scores the raw predictions.
     """
     patterns = [str(pattern) for pattern in runs]
     left_out = {Path(p).resolve() for pattern in exclude for p in glob.glob(str(pattern))}
@@ -145,11 +150,11 @@ def collect(
                     raise ValueError(
                         f"{file}: breast {name} was already predicted in {result.sources[name]}"
                     )
+                try:
+                    source = dm.source(name)
+                except ValueError as exc:  # a name of other data folders
+                    raise ValueError(f"{file}: {exc}") from exc
                 if name not in e.truth:
-                    try:
-                        source = dm.source(name)
-                    except ValueError as exc:  # a name of other data folders
-                        raise ValueError(f"{file}: {exc}") from exc
                     e.truth[name] = load_truth(source, step, name)
                 truth = e.truth[name].positions
                 if prediction.shape != truth.shape:
@@ -157,6 +162,10 @@ def collect(
                         f"{file}: field {name!r} has shape {prediction.shape}, the FE "
                         f"trajectory {truth.shape}"
                     )
+                if projection is not None:  # (N, T, 3), as predict.py writes it
+                    steps = prediction.transpose(1, 0, 2)
+                    steps = projection.project_step(Trajectory.load(source), step, steps)
+                    prediction = steps.transpose(1, 0, 2)
                 result.errors[name] = node_rmse(prediction, truth).astype(np.float32)
                 result.sources[name] = file
                 if name in seconds:

@@ -17,6 +17,7 @@ from dataclasses import asdict, dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
+from fem.contract.plates import NORMAL, ORIGIN
 from fem.contract.projection import StepProjections, constraints, plate_depth, project_steps
 from fem.contract.quality import signed_volume
 from fem.contract.trajectory import NodeFlag, Trajectory
@@ -270,3 +271,28 @@ class ValidityProjection:
             "settings": asdict(self),
         }
         return replace(shapes, **projected), record
+
+    def project_step(self, traj: Trajectory, step: str, predicted: NDArray) -> NDArray[np.float32]:
+        """One step's predicted shapes ``predicted`` (T, N, 3) of ``traj`` projected, the other
+        step's shapes from the FE (`step_shapes`): the models of one step judged alone, as the
+        report scores them (a compression starts from the FE's unloaded state)."""
+        projected, _ = self(traj, step_shapes(traj, step, predicted))
+        return projected.unloaded if step == "unloaded" else projected.compressed[0]
+
+
+def step_shapes(traj: Trajectory, step: str, predicted: NDArray) -> BreastShapes:
+    """A breast's predicted shapes (T, N, 3) of ``step`` (``unloaded`` or ``compression``)
+    as `BreastShapes`, the other step's shapes, the plates and the thickness (the plates' last
+    gap along the lower plate's normal) from the FE trajectory ``traj``."""
+    if step not in ("unloaded", "compression"):
+        raise ValueError(f"step must be 'unloaded' or 'compression', got {step!r}")
+    unloaded = predicted if step == "unloaded" else traj.unloaded
+    compressed = traj.compressed if step == "unloaded" else predicted
+    lower, upper = traj.plates[-1]
+    return BreastShapes(
+        unloaded.astype(np.float32),
+        compressed[None].astype(np.float32),
+        traj.plates[None],
+        traj.compression_ratio[None],
+        np.array([float((upper[ORIGIN] - lower[ORIGIN]) @ lower[NORMAL])]),
+    )

@@ -9,9 +9,13 @@ from conftest import tiny_trajectory
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
+from fem.contract.quality import signed_volume
+from fem.contract.trajectory import Trajectory
 from mammo_net import evaluation as ev
+from mammo_net.metrics import node_rmse
 from mammo_net.report import write_report
 from mammo_net.report_data import collect
+from mammo_net.validity import ValidityProjection
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
 
@@ -266,5 +270,29 @@ def test_report_command_config_composes(cohort, tmp_path):
     assert cfg.runs == [f"{cohort}/*"] and cfg.data_dir is None
     assert cfg.exclude == ["results/cv/att_blstm/*/fold*"]  # the stale folds (docs/results.md)
     assert cfg.analysis.linear_fit_max_ratio == 0.53 and cfg.analysis.ratio_of_interest == 0.2
+    assert cfg.projection.min_volume_ratio == 0.05  # scored as predict.py writes them
     out = write_report(cfg.runs, cfg.out_dir, cfg.analysis, cfg.data_dir, cfg.exclude)
     assert (out / "report.md").exists()
+
+
+def test_report_scores_the_projected_predictions(cohort, tmp_path):
+    """With a projection the report scores what predict.py writes: each prediction projected
+    (`ValidityProjection.project_step`), and says so."""
+    projection = ValidityProjection()
+    (raw,) = [e for e in collect([cohort / "fold*"]) if e.step == "compression"]
+    (e,) = [e for e in collect([cohort / "fold*"], projection=projection)]
+    moved = 0
+    for fold in ("fold0", "fold1"):
+        for name, predicted in np.load(cohort / fold / "predictions" / "model.npz").items():
+            traj = Trajectory.load(cohort.parent / "trajectories" / f"{name}.npz")
+            steps = projection.project_step(traj, "compression", predicted.transpose(1, 0, 2))
+            assert (signed_volume(steps.astype(np.float64), traj.cells) > 0).all()
+            expected = node_rmse(steps.transpose(1, 0, 2), e.truth[name].positions)
+            np.testing.assert_allclose(e.models["model"].errors[name], expected, rtol=1e-5)
+            moved += not np.allclose(expected, raw.models["model"].errors[name])
+    assert moved  # the offsets push skin into the plates: the projection changes the scores
+    analysis = OmegaConf.load(CONF / "analysis" / "default.yaml")
+    write_report([cohort / "fold*"], tmp_path / "r", analysis, projection=projection)
+    numbers = json.loads((tmp_path / "r" / "report.json").read_text())
+    assert numbers["projection"] == {"min_volume_ratio": 0.05, "volume_tolerance": 0.01}
+    assert "after the validity projection" in (tmp_path / "r" / "report.md").read_text()
