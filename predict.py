@@ -10,7 +10,7 @@ the compression model for each thickness (`mammo_net.predictor`).
 Writes the final shapes (VTU, and the input's format where meshio writes it), every step as an
 XDMF time series, a PNG preview in three body planes, the mapped landmarks (CSV, mm) and
 ``checks.json``: the prediction time, what the projection onto valid shapes moved
-(``projection``, on by default; ``projection=null`` writes the raw predictions) and the physical
+(``projection``, on by default; ``projection=raw`` writes the raw predictions) and the physical
 checks of every shape (`mammo_net.validity`: inverted elements, volume change, skin inside a
 plate), which also warn, or refuse the output with ``checks.on_violation=refuse``.
 """
@@ -64,7 +64,7 @@ def predict(cfg: DictConfig) -> Path:
     shapes = predict_breast(traj, unloaded, compression, thickness, conditions)
     seconds = time.perf_counter() - start
     projected = None
-    if cfg.projection:  # onto physically valid shapes before they are checked
+    if cfg.get("projection"):  # onto physically valid shapes before they are checked
         shapes, projected = instantiate(cfg.projection)(traj, shapes)
     record = {**checks(traj, shapes), "projection": projected}
     rows = landmarks and map_landmarks(

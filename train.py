@@ -121,9 +121,9 @@ def train(cfg: DictConfig) -> float:
             tmp.write_text(table)
         print(table)
         if cfg.report:  # tables and figures of this run: python -m mammo_net.report on it
-            print(
-                "report:", write_report([cfg.run_dir], Path(cfg.run_dir) / "report", cfg.analysis)
-            )
+            projection = instantiate(cfg.projection) if cfg.get("projection") else None
+            out = Path(cfg.run_dir) / "report"
+            print("report:", write_report([cfg.run_dir], out, cfg.analysis, projection=projection))
     return score
 
 

@@ -384,7 +384,7 @@ def write_report(
 
 @hydra.main(config_path=CONFIG_DIR, config_name="report", version_base="1.3")
 def main(cfg: DictConfig) -> None:
-    projection = instantiate(cfg.projection) if cfg.projection else None
+    projection = instantiate(cfg.projection) if cfg.get("projection") else None
     out = write_report(cfg.runs, cfg.out_dir, cfg.analysis, cfg.data_dir, cfg.exclude, projection)
     print((out / "report.md").read_text())
 

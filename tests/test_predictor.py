@@ -168,7 +168,7 @@ def test_predict_writes_meshes_time_series_preview_and_landmarks(models, tmp_pat
     cfg = _predict_cfg(
         models, tmp_path, f"input={meshio_file}", "thickness=[0.6,0.8]", "laterality=R",
         f"landmarks={tmp_path / 'lm.csv'}", "reader.extent_mm=[1,500]",  # a 3 mm test breast
-        "projection=null",  # the raw predictions, to compare with predict_breast's
+        "projection=raw",  # the raw predictions, to compare with predict_breast's
     )  # fmt: skip
     out = predict.predict(cfg)
     names = sorted(p.name for p in out.iterdir())

@@ -273,6 +273,10 @@ def test_report_command_config_composes(cohort, tmp_path):
     assert cfg.projection.min_volume_ratio == 0.05  # scored as predict.py writes them
     out = write_report(cfg.runs, cfg.out_dir, cfg.analysis, cfg.data_dir, cfg.exclude)
     assert (out / "report.md").exists()
+    for command in ("report", "predict", "train"):  # one projection group, raw on request
+        with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+            default, raw = compose(command), compose(command, overrides=["projection=raw"])
+        assert default.projection == cfg.projection and not raw.get("projection")
 
 
 def test_report_scores_the_projected_predictions(cohort, tmp_path):

@@ -311,6 +311,7 @@ def test_two_process_cpu_ddp(trajectory_folder, tmp_path):
     logged = (run / "results.md").read_text()
     report = (run / "report" / "report.md").read_text()  # the run's own evaluation report
     assert "| one-fold | compression | att_blstm | 6 | (" in report
+    assert "after the validity projection" in report  # scored as predict.py writes them
     assert (run / "report" / "figures" / "one_fold_compression_sections_worst.png").exists()
     model = SurrogateModule.from_checkpoint(next((run / "checkpoints").glob("epoch*.ckpt")))
     dm = TrajectoryDataModule(str(trajectory_folder), val_fraction=0.25, batch_size=5)
