@@ -169,6 +169,8 @@ def test_cross_validation_configs_instantiate(step, cv, tmp_path):
     assert cfg.hydra.sweep.dir == f"results/cv/{cv[3:]}/{step}"  # committed model files
     callbacks = [instantiate(c) for c in cfg.callbacks.values() if c and "_target_" in c]
     assert len(callbacks) == (1 if cv == "cv_xgboost" else 2)  # the network's: + resume state
+    for c in callbacks:  # a retrained fold replaces its committed best.ckpt, no best-v1.ckpt
+        assert getattr(c, "filename", None) != "best" or not c._enable_version_counter
     dm, model = instantiate(cfg.data), instantiate(cfg.model)
     assert dm.hparams.step == step and dm.hparams.fold == 4
     assert model.n_features == (22 if step == "compression" else 11)
