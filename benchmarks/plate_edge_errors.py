@@ -2,7 +2,8 @@
 
 For each compression run folder (``predictions/<model>.npz``, predicted first from the run's
 model files where missing, as the report does), per breast at the last recorded step: the
-node errors against the FE (mm), raw and after `mammo_net.validity.ValidityProjection`, and,
+node errors against the FE (Euclidean distance, mm: sqrt 3 times the paper's per-node RMSE that
+the report uses), raw and after `mammo_net.validity.ValidityProjection`, and,
 for every node more than ``--threshold`` mm off in the raw prediction, its signed distance
 to the upper plate's chest-side edge in the compression's first step (mm, along the plate's
 in-plane axis away from the chest: negative behind the edge, over the chest-side tissue).
