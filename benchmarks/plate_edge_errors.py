@@ -25,7 +25,7 @@ from fem.contract.atomic import write_json
 from fem.contract.trajectory import Trajectory
 from mammo_net.inference import load_predictions
 from mammo_net.predictor import predict_run
-from mammo_net.validity import ValidityProjection, step_shapes
+from mammo_net.validity import ValidityProjection
 
 
 def edge_distance(traj: Trajectory, nodes: np.ndarray) -> np.ndarray:
@@ -37,9 +37,9 @@ def edge_distance(traj: Trajectory, nodes: np.ndarray) -> np.ndarray:
 
 def breast_row(traj: Trajectory, predicted: np.ndarray, threshold: float) -> dict:
     """Last-step node errors of one breast's compression prediction ``predicted`` (T2, N, 3)."""
-    projected, _ = ValidityProjection()(traj, step_shapes(traj, "compression", predicted))
+    projected = ValidityProjection().project_step(traj, "compression", predicted)
     raw = np.linalg.norm(predicted[-1] - traj.compressed[-1], axis=-1)
-    after = np.linalg.norm(projected.compressed[0][-1] - traj.compressed[-1], axis=-1)
+    after = np.linalg.norm(projected[-1] - traj.compressed[-1], axis=-1)
     bad = np.flatnonzero(raw > threshold)
     return {
         "max_raw_mm": float(raw.max()),
