@@ -1,5 +1,6 @@
 """The sequence surrogate: shapes, training lowers the loss, the checkpoint rebuilds it."""
 
+from dataclasses import replace
 from pathlib import Path
 
 import lightning as L
@@ -12,8 +13,6 @@ from datamodules.trajectories import TrajectoryDataModule
 from mammo_net.models import PAPER_ACTIVATIONS, AttBLSTM
 from mammo_net.module import SurrogateModule, warmup_cosine
 from mammo_net.predictor import load_surrogate
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.mark.parametrize("activations", [("tanh", "relu"), ("sigmoid", "sigmoid")])
@@ -40,24 +39,45 @@ def test_the_step_sets_the_features_and_the_paper_activations():
         )
 
 
-def test_committed_compression_checkpoints_are_refused_as_stale():
-    """The Att-BLSTM compression folds in results/ not yet retrained (7-9) were trained before
-    the plate edges were redefined (`datamodules.features.REVISIONS`): they load, and are
-    refused for prediction. Fold 9 is retrained last: then this test needs another old file."""
-    path = ROOT / "results/cv/att_blstm/compression/fold9/checkpoints/best.ckpt"
+def old_format_checkpoint(step: str, folder: Path) -> Path:
+    """A checkpoint as the cross-validation folds were saved before 2026-12-05: hyperparameter
+    ``n_features`` and no ``step``, no network name, a feature schema without revisions."""
+    model = SurrogateModule(step, hidden=4, layers=1)
+    hparams = dict(model.hparams)
+    del hparams["step"]
+    old_schema = replace(
+        FeatureSchema.of(step, {"compression": 70, "unloaded": 100}[step]), revisions=()
+    )
+    path = folder / f"old_{step}.ckpt"
+    torch.save(
+        {
+            "state_dict": model.state_dict(),
+            "hyper_parameters": {"n_features": model.n_features, **hparams},
+            "feature_schema": old_schema.to_json(),
+        },
+        path,
+    )
+    return path
+
+
+def test_old_compression_checkpoints_are_refused_as_stale(tmp_path):
+    """Compression checkpoints trained before the plate edges were redefined
+    (`datamodules.features.REVISIONS`) load, and are refused for prediction."""
+    path = old_format_checkpoint("compression", tmp_path)
     model = SurrogateModule.from_checkpoint(path)
     assert model.schema.revisions == ()
-    with pytest.raises(ValueError, match=r"best\.ckpt: .*upper_plate_edge_y 1 -> 2.*retrain"):
+    with pytest.raises(
+        ValueError, match=r"old_compression\.ckpt: .*upper_plate_edge_y 1 -> 2.*retrain"
+    ):
         load_surrogate(path)
 
 
 @pytest.mark.parametrize("step", ["compression", "unloaded"])
-def test_committed_checkpoints_load(step, tmp_path):
-    """The cross-validation checkpoints in results/, saved with ``n_features`` and no step,
-    take their step from the feature schema."""
-    path = ROOT / f"results/cv/att_blstm/{step}/fold9/checkpoints/best.ckpt"  # not retrained
+def test_old_format_checkpoints_load(step, tmp_path):
+    """Checkpoints saved with ``n_features`` and no step take their step from the feature
+    schema."""
+    path = old_format_checkpoint(step, tmp_path)
     checkpoint = torch.load(path, weights_only=True)
-    assert "step" not in checkpoint["hyper_parameters"]  # the format before the step setting
     model = SurrogateModule.from_checkpoint(path)
     assert model.hparams.step == model.schema.step == step
     assert model.hparams.activations == PAPER_ACTIVATIONS[step]
@@ -69,6 +89,10 @@ def test_committed_checkpoints_load(step, tmp_path):
     checkpoint["hyper_parameters"]["n_features"] = 33  # not the step's
     torch.save(checkpoint, tmp_path / "other.ckpt")
     with pytest.raises(ValueError, match=f"n_features=33 is not .* step '{step}'"):
+        SurrogateModule.from_checkpoint(tmp_path / "other.ckpt")
+    del checkpoint["feature_schema"]
+    torch.save(checkpoint, tmp_path / "other.ckpt")
+    with pytest.raises(ValueError, match="names no step"):
         SurrogateModule.from_checkpoint(tmp_path / "other.ckpt")
 
 

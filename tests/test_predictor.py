@@ -27,11 +27,6 @@ from mammo_net.predictor import RUN_MODELS, load_surrogate, predict_breast
 ROOT = Path(__file__).resolve().parents[1]
 
 
-#: Committed cross-validation folds whose model predates a redefinition of its inputs
-#: (`datamodules.features.REVISIONS`): kept for the history, refused for prediction until
-#: retrained. A retrained fold leaves this set.
-STALE_FOLDS = {f"att_blstm/compression/fold{k}" for k in (9,)}
-
 COMMITTED_MODELS = sorted(
     path.relative_to(ROOT / "results/cv")
     for name in RUN_MODELS.values()
@@ -40,22 +35,13 @@ COMMITTED_MODELS = sorted(
 
 
 @pytest.mark.parametrize("path", COMMITTED_MODELS, ids=str)
-def test_committed_models_predict_or_are_known_stale(path):
-    """Every model file in results/cv loads for prediction with this code's inputs, unless its
-    fold is listed as stale, and then it is refused naming the redefined inputs: a model
+def test_committed_models_predict(path):
+    """Every model file in results/cv loads for prediction with this code's inputs: a model
     trained on this code's inputs but saved without their revisions (the graph model's
-    compression folds 0-2 until 2026-12-05) fails here instead of in the report."""
-    fold = str(path.parents[1])
-    if fold in STALE_FOLDS:
-        with pytest.raises(ValueError, match=r"revision trained on -> this version's: .*retrain"):
-            load_surrogate(ROOT / "results/cv" / path)
-    else:
-        surrogate = load_surrogate(ROOT / "results/cv" / path)
-        assert surrogate.schema.step == path.parts[1]
-
-
-def test_every_stale_fold_is_committed():
-    assert STALE_FOLDS <= {str(p.parents[1]) for p in COMMITTED_MODELS}
+    compression folds 0-2 until 2026-12-05), or trained before a redefinition of its inputs
+    (the Att-BLSTM's compression folds until 2026-12-06), fails here instead of in the report."""
+    surrogate = load_surrogate(ROOT / "results/cv" / path)
+    assert surrogate.schema.step == path.parts[1]
 
 
 def scheduled_trajectory(thickness=0.7, patient=0):
