@@ -9,6 +9,7 @@ from conftest import tiny_trajectory
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
+import mammo_net.module  # noqa: F401  (stores model/att_blstm_signature, as train.py's import does)
 from fem.contract.quality import signed_volume
 from fem.contract.trajectory import Trajectory
 from mammo_net import evaluation as ev
