@@ -45,9 +45,7 @@ def old_format_checkpoint(step: str, folder: Path) -> Path:
     model = SurrogateModule(step, hidden=4, layers=1)
     hparams = dict(model.hparams)
     del hparams["step"]
-    old_schema = replace(
-        FeatureSchema.of(step, {"compression": 70, "unloaded": 100}[step]), revisions=()
-    )
+    old_schema = replace(FeatureSchema.of(step, 5), revisions=())
     path = folder / f"old_{step}.ckpt"
     torch.save(
         {
@@ -78,6 +76,7 @@ def test_old_format_checkpoints_load(step, tmp_path):
     schema."""
     path = old_format_checkpoint(step, tmp_path)
     checkpoint = torch.load(path, weights_only=True)
+    assert "step" not in checkpoint["hyper_parameters"]  # the format before the step setting
     model = SurrogateModule.from_checkpoint(path)
     assert model.hparams.step == model.schema.step == step
     assert model.hparams.activations == PAPER_ACTIVATIONS[step]
