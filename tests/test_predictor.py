@@ -27,21 +27,22 @@ from mammo_net.predictor import RUN_MODELS, load_surrogate, predict_breast
 ROOT = Path(__file__).resolve().parents[1]
 
 
-COMMITTED_MODELS = sorted(
-    path.relative_to(ROOT / "results/cv")
+COMMITTED_MODELS = sorted(  # results/<cv folder>/<model>/<step>/fold<k>/<model file>
+    path.relative_to(ROOT / "results")
     for name in RUN_MODELS.values()
-    for path in (ROOT / "results/cv").glob(f"*/*/fold*/{name}")
+    for path in (ROOT / "results").glob(f"cv*/*/*/fold*/{name}")
 )
 
 
 @pytest.mark.parametrize("path", COMMITTED_MODELS, ids=str)
 def test_committed_models_predict(path):
-    """Every model file in results/cv loads for prediction with this code's inputs: a model
+    """Every model file in results/cv (the paper cohort's folds) and results/cv_v2 (the cohort
+    v2's) loads for prediction with this code's inputs: a model
     trained on this code's inputs but saved without their revisions (the graph model's
     compression folds 0-2 until 2026-12-05), or trained before a redefinition of its inputs
     (the Att-BLSTM's compression folds until 2026-12-06), fails here instead of in the report."""
-    surrogate = load_surrogate(ROOT / "results/cv" / path)
-    assert surrogate.schema.step == path.parts[1]
+    surrogate = load_surrogate(ROOT / "results" / path)
+    assert surrogate.schema.step == path.parts[2]
 
 
 def scheduled_trajectory(thickness=0.7, patient=0):
