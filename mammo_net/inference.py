@@ -97,11 +97,14 @@ def breast_prediction(predict: Callable[[NDArray], NDArray], breast: Breast) -> 
 
 
 def save_predictions(
-    path: str | Path, predict: Callable[[NDArray], NDArray], breasts: Iterable[Breast]
+    path: str | Path,
+    predict: Callable[[NDArray], NDArray],
+    breasts: Iterable[Breast],
+    timings: bool = True,
 ) -> Path:
-    """Write ``{breast name: (N, T, 3) mm}`` for ``breasts`` to ``path`` (.npz, atomically) and
-    the wall time of each breast's prediction (cached features to millimetres, s) to
-    ``path.with_suffix(".json")``, with the machine it ran on."""
+    """Write ``{breast name: (N, T, 3) mm}`` for ``breasts`` to ``path`` (.npz, atomically) and,
+    with ``timings``, the wall time of each breast's prediction (cached features to
+    millimetres, s) to ``path.with_suffix(".json")``, with the machine it ran on."""
     arrays, seconds = {}, {}
     for b in breasts:
         start = time.perf_counter()
@@ -109,6 +112,8 @@ def save_predictions(
         seconds[b.name] = time.perf_counter() - start
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
         np.savez_compressed(f, **arrays)
+    if not timings:
+        return Path(path)
     machine = {
         "cpu_count": os.cpu_count(),
         "torch_threads": torch.get_num_threads(),

@@ -242,7 +242,9 @@ def predict_run(run: str | Path) -> list[Path]:
     ``.hydra/config.yaml`` (`datamodules.trajectories.TrajectoryDataModule.from_run`, or the
     graph data module's for a graph model: plain values, nothing instantiated). A run kept as
     model files (the committed cross-validation folds in ``results/``) thus feeds the
-    evaluation report without retraining."""
+    evaluation report without retraining. A prediction's existing timing file
+    (``predictions/<model>.json``, committed beside the model files) is kept: it records the
+    run's own measurement, not this machine's."""
     run = Path(run)
     todo = [
         run / file
@@ -265,7 +267,8 @@ def predict_run(run: str | Path) -> list[Path]:
             data[kind].setup()
         dm = data[kind]
         surrogate.check(dm.hparams.step, str(file))
-        written.append(save_predictions(target, surrogate.predict, dm.val))
+        timed = not target.with_suffix(".json").exists()
+        written.append(save_predictions(target, surrogate.predict, dm.val, timings=timed))
     return written
 
 

@@ -364,6 +364,7 @@ def test_cross_validation_sweeps_feed_the_report(trajectory_folder, tmp_path):
         for model in ("att_blstm", "xgboost")
     }
     saved = {model: load_predictions(path) for model, path in kept.items()}
+    timings = {model: path.with_suffix(".json").read_bytes() for model, path in kept.items()}
     for path in kept.values():
         path.unlink()
     analysis = OmegaConf.load(CONF + "/analysis/default.yaml")
@@ -373,6 +374,7 @@ def test_cross_validation_sweeps_feed_the_report(trajectory_folder, tmp_path):
         assert saved[model].keys() == again.keys()
         for name in again:
             np.testing.assert_allclose(again[name], saved[model][name], atol=1e-4)  # mm
+        assert path.with_suffix(".json").read_bytes() == timings[model]  # the run's own timing
     summary = json.loads((out / "report.json").read_text())["summary"]
     # 24 breasts, 10 folds: folds 0 and 1 validate 2 patients (4 breasts) each -> 8 breasts.
     for model in ("att_blstm", "xgboost"):
