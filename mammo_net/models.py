@@ -173,6 +173,27 @@ def interpolate_steps(
     return points[i] + w * (points[i + 1] - points[i])  # (T, N, 3)
 
 
+def compliance_gain(
+    nodes: torch.Tensor,
+    graph: torch.Tensor,
+    conditions: torch.Tensor,
+    pairs: Sequence[tuple[int, int]],
+) -> torch.Tensor:
+    """Each node's breast's linear-elastic compliance relative to the reference materials,
+    (N, 1): ``exp(-sum_t f_t c_t)`` over the tissues t of ``pairs`` (a node input column of
+    t's indicator, a condition column of t's log-modulus ratio ``c_t = log(E_t / E_t^ref)``),
+    ``f_t`` the breast's fraction of t's nodes among them. Under a body load the displacement
+    of a linear-elastic body scales as 1/E, so a decoder whose output is multiplied by it
+    learns the displacement per unit compliance and extrapolates in stiffness as 1/E.
+    """
+    columns, condition_columns = (list(c) for c in zip(*pairs, strict=True))
+    bits = nodes[:, columns]  # (N, K)
+    counts = bits.new_zeros(len(conditions), len(columns)).index_add_(0, graph, bits)  # (B, K)
+    fractions = counts / counts.sum(dim=1, keepdim=True).clamp_min(1.0)  # (B, K)
+    log_modulus = (fractions * conditions[:, condition_columns]).sum(dim=1)  # (B,)
+    return torch.exp(-log_modulus)[graph][:, None]  # (N, 1)
+
+
 class MeshGraphNet(nn.Module):
     """Encode-process-decode over a breast's tetrahedral mesh (MeshGraphNets, Pfaff et al.
     2021) with a global path per block (`SliceAttention`), decoding every node's whole step
@@ -202,6 +223,10 @@ class MeshGraphNet(nn.Module):
         Of each block's `SliceAttention`; ``slices=0``: no global path (plain MeshGraphNets).
     decoder_hidden : int
         Width of the per-(step, node) decoder.
+    compliance : sequence of (int, int)
+        Pairs (tissue indicator column of ``nodes``, log-modulus column of ``conditions``):
+        the decoded displacement is multiplied by each breast's `compliance_gain` over these
+        tissues; empty: not scaled.
     """
 
     def __init__(
@@ -215,8 +240,10 @@ class MeshGraphNet(nn.Module):
         slices: int,
         heads: int,
         decoder_hidden: int,
+        compliance: Sequence[tuple[int, int]] = (),
     ) -> None:
         super().__init__()
+        self.compliance = tuple(compliance)
         self.node_encoder = mlp(n_node + n_condition + n_step, hidden, hidden)
         self.edge_encoder = mlp(4, hidden, hidden)
         self.blocks = nn.ModuleList(MessagePassing(hidden) for _ in range(layers))
@@ -279,4 +306,9 @@ class MeshGraphNet(nn.Module):
         a = self.node_head(h)[None] + z  # (T, N, D)
         if node_steps.shape[-1]:  # the unloaded state has no per-node step inputs
             a = a + self.node_step_head(node_steps)  # (T, N, D)
-        return x[None] + self.decoder(a)  # (T, N, 3)
+        displacement = self.decoder(a)  # (T, N, 3)
+        if self.compliance:
+            displacement = displacement * compliance_gain(
+                nodes, graph, conditions, self.compliance
+            )  # (T, N, 3) * (N, 1)
+        return x[None] + displacement  # (T, N, 3)

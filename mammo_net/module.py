@@ -338,6 +338,14 @@ class SurrogateModule(NetworkModule):
         return loss
 
 
+#: `MeshGraphModule.compliance_scaling`'s tissues: (node indicator column, log-modulus
+#: condition column) of fat and gland, the tissues that carry the body load.
+COMPLIANCE_COLUMNS = tuple(
+    (NODE_FEATURES.index(bit), CONDITION_FEATURES.index(f"log_young_{tissue}"))
+    for bit, tissue in (("tissue_bit_1_fat", "fat"), ("tissue_bit_2_gland", "gland"))
+)
+
+
 class MeshGraphModule(NetworkModule):
     """The mesh-aware surrogate: `mammo_net.models.MeshGraphNet` on whole breast graphs
     (`datamodules.graphs`), every node's trajectory of a step in one pass, (T, N, 3); RMSE
@@ -363,6 +371,13 @@ class MeshGraphModule(NetworkModule):
         interpolate the others linearly, from the input shape on (`mammo_net.models.step_knots`;
         about 0.01 mm RMS added on the FE's own compression trajectories with 20 of 70 steps);
         ``None``: decode every step.
+    compliance_scaling : bool, optional
+        Multiply the decoded displacement by the breast's linear-elastic compliance over its
+        fat and gland (`mammo_net.models.compliance_gain`): the network then learns the
+        displacement per unit compliance and extrapolates to softer or stiffer tissue as 1/E,
+        as a body load's displacement does. ``None``: on for the unloaded state (gravity),
+        off for the compression (driven by the plates' travel). With the paper's materials
+        the gain is 1. Checkpoints written before the setting existed load without it.
     lr, lr_schedule
         As `SurrogateModule`'s.
     """
@@ -379,6 +394,7 @@ class MeshGraphModule(NetworkModule):
         decoder_hidden: int = 48,
         train_steps: int | None = 16,
         knots: int | None = 20,
+        compliance_scaling: bool | None = None,
         lr: float = 0.001,
         lr_schedule: str = "cosine",
     ) -> None:
@@ -399,7 +415,19 @@ class MeshGraphModule(NetworkModule):
             slices,
             heads,
             decoder_hidden,
+            COMPLIANCE_COLUMNS if self.scales_compliance else (),
         )
+
+    @property
+    def scales_compliance(self) -> bool:
+        """Whether the decoded displacement is scaled (`compliance_scaling`, resolved)."""
+        setting = self.hparams.compliance_scaling
+        return self.hparams.step == "unloaded" if setting is None else bool(setting)
+
+    @classmethod
+    def upgrade_hparams(cls, hparams: dict, checkpoint: dict, path: str | Path) -> dict:
+        """Checkpoints written before `compliance_scaling` existed were trained without it."""
+        return {"compliance_scaling": False, **hparams}
 
     def adapt(self, dm: L.LightningDataModule) -> None:
         """Record the data's schema (graph inputs of the model's step, refused otherwise)."""

@@ -21,7 +21,7 @@ from datamodules.graphs import (
 from fem.breasts.mesh import refine
 from fem.contract.quality import mesh_edges
 from fem.contract.trajectory import Trajectory
-from mammo_net.models import interpolate_steps, step_knots
+from mammo_net.models import compliance_gain, interpolate_steps, step_knots
 from mammo_net.module import MeshGraphModule, NetworkModule, SurrogateModule
 from mammo_net.predictor import load_surrogate, predict_breast
 from tests.conftest import SIMULATION_METADATA, tiny_trajectory
@@ -92,9 +92,11 @@ def test_batch_offsets_edges_and_refuses_other_step_counts():
         batch_graphs([a, short])
 
 
-def _model(step: str = "compression") -> MeshGraphModule:
+def _model(step: str = "compression", **settings) -> MeshGraphModule:
     torch.manual_seed(0)
-    return MeshGraphModule(step, hidden=16, layers=2, slices=4, heads=2, decoder_hidden=16)
+    return MeshGraphModule(
+        step, hidden=16, layers=2, slices=4, heads=2, decoder_hidden=16, **settings
+    )
 
 
 def test_network_is_equivariant_to_node_order_and_batching():
@@ -175,6 +177,46 @@ def test_models_refuse_the_other_data(trajectory_folder):
     rows = TrajectoryDataModule(str(trajectory_folder), "compression")
     with pytest.raises(ValueError, match="model=mesh_gnn trains on whole-breast graphs"):
         _model().adapt(rows)
+
+
+def test_compliance_gain_is_the_fraction_weighted_inverse_modulus():
+    """Two breasts: 3 fat nodes and 1 gland node at half and twice the reference moduli
+    (gain 0.5**-0.75 * 2**-0.25 = sqrt 2), and one at the reference materials (gain 1)."""
+    nodes = torch.tensor([[1.0, 0], [1, 0], [1, 0], [0, 1], [1, 0], [0, 1]])  # (N, 2): fat, gland
+    graph = torch.tensor([0, 0, 0, 0, 1, 1])
+    conditions = torch.tensor(
+        [[np.log(0.5), np.log(2.0), 5.0], [0.0, 0.0, 5.0]], dtype=torch.float32
+    )
+    gain = compliance_gain(nodes, graph, conditions, ((0, 0), (1, 1)))
+    expected = torch.tensor([2**0.5] * 4 + [1.0] * 2)[:, None]
+    torch.testing.assert_close(gain, expected)
+
+
+def test_compliance_scaling_multiplies_the_decoded_displacement(tmp_path):
+    """The same weights with and without the scaling: the displacements differ by the gain,
+    and at the paper's materials not at all. On by default for the unloaded state only, and
+    off for checkpoints written before the setting existed."""
+    plain = _model("unloaded", compliance_scaling=False).eval()
+    scaled = _model("unloaded").eval()
+    assert scaled.scales_compliance and not _model("compression").scales_compliance
+    scaled.load_state_dict(plain.state_dict())
+    sample, _ = graph_sample(_traj("L"), "unloaded")
+    batch = batch_graphs([sample])
+    x = batch["nodes"][:, :3]
+    with torch.no_grad():
+        torch.testing.assert_close(scaled(batch), plain(batch))  # paper materials: gain 1
+        batch["conditions"][:, :2] = torch.log(torch.tensor([0.5, 0.8]))
+        gain = compliance_gain(
+            batch["nodes"], batch["graph"], batch["conditions"], scaled.net.compliance
+        )
+        assert (gain > 1).all()
+        torch.testing.assert_close(scaled(batch) - x, (plain(batch) - x) * gain)
+    hparams = dict(scaled.hparams)
+    del hparams["compliance_scaling"]
+    path = tmp_path / "before.ckpt"
+    checkpoint = {"network": "mesh_gnn", "hyper_parameters": hparams}
+    torch.save({**checkpoint, "state_dict": scaled.state_dict()}, path)
+    assert not NetworkModule.from_checkpoint(path).scales_compliance
 
 
 def test_training_decodes_a_sample_of_the_steps_with_the_last():
