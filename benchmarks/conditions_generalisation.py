@@ -18,8 +18,18 @@ nothing in it is instantiated. A breast's error is the report's (`mammo_net.repo
 `mammo_net.report.breast_errors`): the mean node RMSE over all recorded steps and at the last
 one, mm; its conditions are those its trajectory records (``metadata["simulation"]``).
 
+The ratio is also given per run (one fold's held-out group is a few dozen breasts, so it is
+noisy), and against a control when ``--control`` names the JSON this benchmark wrote for
+another model on the same breasts (a model blind to the materials, e.g. XGBoost on the
+paper's features): the control's ratio on the breasts both scored measures how hard the
+held-out group is for reasons other than its stiffness, and the model's ratio over it is the
+"controlled" ratio.
+
+    python benchmarks/conditions_generalisation.py 'results/cv_v2/mesh_gnn/unloaded/fold*' \
+        --control results/cv_v2/xgboost_unloaded.json --out results/cv_v2
+
 Writes ``<out>/<model>_<step>.md`` (the tables, also printed) and ``.json`` (settings, groups,
-ratios and the per-breast rows), atomically.
+ratios, per-run ratios and the per-breast rows), atomically.
 """
 
 from __future__ import annotations
@@ -123,13 +133,52 @@ def summary(rows: list[dict]) -> dict:
             groups.append(group)
     ratios = []
     for view in VIEWS:
-        side = {g["range"]: g for g in groups if g["view"] == view}
-        ratio: dict = {"view": view}
-        for m in METRICS:
-            held, inside = side["held out"][m], side["in range"][m]
-            ratio[m] = held["mean"] / inside["mean"] if held and inside else None
-        ratios.append(ratio)
+        mine = [r for r in rows if view in ("all", r["view"])]
+        ratios.append({"view": view, **{m: held_out_ratio(mine, m) for m in METRICS}})
     return {"groups": groups, "ratios": ratios}
+
+
+def held_out_ratio(rows: list[dict], metric: str) -> float | None:
+    """Mean ``metric`` of the held-out rows over that of the in-range rows (None without
+    rows on either side)."""
+    held = [r[metric] for r in rows if r["held_out"]]
+    inside = [r[metric] for r in rows if not r["held_out"]]
+    return sum(held) / len(held) / (sum(inside) / len(inside)) if held and inside else None
+
+
+def run_ratios(rows: list[dict], control: list[dict] | None = None) -> list[dict]:
+    """The held-out / in-range ratio over all runs and per run, with the breast counts; with
+    the per-breast rows of a ``control`` model, also its ratio on the breasts both scored
+    (each breast grouped as in ``rows``) and the model's ratio over it ("controlled").
+
+    Raises
+    ------
+    ValueError
+        The control scored none of the breasts.
+    """
+    theirs = {(r["breast"], r["view"]): r for r in control or []}
+    if control is not None:
+        rows = [r for r in rows if (r["breast"], r["view"]) in theirs]
+        if not rows:
+            raise ValueError("--control: it scored none of these breasts (matched by breast, view)")
+    entries = []
+    for run in ("all", *dict.fromkeys(r["run"] for r in rows)):
+        mine = [r for r in rows if run in ("all", r["run"])]
+        entry: dict = {
+            "run": run,
+            "in_range": sum(not r["held_out"] for r in mine),
+            "held_out": sum(r["held_out"] for r in mine),
+        }
+        for m in METRICS:
+            entry[m] = ratio = held_out_ratio(mine, m)
+            if control is not None:
+                paired = [
+                    {**theirs[r["breast"], r["view"]], "held_out": r["held_out"]} for r in mine
+                ]
+                entry[f"control_{m}"] = base = held_out_ratio(paired, m)
+                entry[f"controlled_{m}"] = ratio / base if ratio and base else None
+        entries.append(entry)
+    return entries
 
 
 def markdown(table: dict, model: str, step: str) -> str:
@@ -149,6 +198,18 @@ def markdown(table: dict, model: str, step: str) -> str:
     for r in table["ratios"]:
         cells = [f"{r[m]:.2f}x" if r[m] is not None else "-" for m in METRICS]
         lines.append(f"| {r['view']} | {cells[0]} | {cells[1]} |")
+    controlled = "control_all_steps" in table["runs"][0]
+    head = " | control, all / last | controlled, all / last" if controlled else ""
+    lines += [
+        "",
+        f"| runs | breasts in range / held out | held out / in range, all / last{head} |",
+        "| --- | --- | --- |" + (" --- | --- |" if controlled else ""),
+    ]
+    for r in table["runs"]:
+        cells = [f"{r['in_range']} / {r['held_out']}", ratio_pair(r, "")]
+        if controlled:
+            cells += [ratio_pair(r, "control_"), ratio_pair(r, "controlled_")]
+        lines.append(f"| {r['run']} | " + " | ".join(cells) + " |")
     known = [r[m] for r in table["ratios"] for m in METRICS if r[m] is not None]
     if known:
         worst = max(known)
@@ -159,11 +220,44 @@ def markdown(table: dict, model: str, step: str) -> str:
     return "\n".join(lines) + "\n"
 
 
+def ratio_pair(entry: dict, prefix: str) -> str:
+    """``entry``'s ratios ``<prefix>all_steps`` and ``<prefix>last_step``, e.g. ``1.02x / 0.97x``."""
+    return " / ".join(
+        "-" if entry[f"{prefix}{m}"] is None else f"{entry[f'{prefix}{m}']:.2f}x" for m in METRICS
+    )
+
+
+def read_control(path: Path) -> list[dict]:
+    """The per-breast rows of a JSON this benchmark wrote (``--control``).
+
+    Raises
+    ------
+    ValueError
+        Not such a file; the message names it and the field.
+    """
+    try:
+        rows = json.loads(path.read_text())["breasts"]
+        return [
+            {"breast": r["breast"], "view": r["view"], **{m: float(r[m]) for m in METRICS}}
+            for r in rows
+        ]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise ValueError(
+            f"{path}: not a conditions_generalisation JSON (field 'breasts' with breast, view, "
+            f"{', '.join(METRICS)}): {exc!r}"
+        ) from exc
+
+
 def evaluate(
-    patterns: list[str], model: str | None, bounds: Bounds | None, out: Path
+    patterns: list[str],
+    model: str | None,
+    bounds: Bounds | None,
+    out: Path,
+    control: Path | None = None,
 ) -> tuple[Path, Path]:
-    """The tables of the run folders ``patterns`` (glob patterns allowed) into ``out``;
-    returns the Markdown and JSON files."""
+    """The tables of the run folders ``patterns`` (glob patterns allowed) into ``out``, with
+    the ratios against the ``control`` JSON when given; returns the Markdown and JSON files."""
+    control_rows = read_control(control) if control is not None else None
     runs = [Path(p) for pattern in patterns for p in sorted(glob.glob(pattern))]
     if not runs:
         raise FileNotFoundError(f"runs: no run folder matches {patterns}")
@@ -188,7 +282,7 @@ def evaluate(
     if len(set(steps.values())) > 1:
         raise ValueError(f"runs of different steps {steps}; evaluate each step on its own")
     step = steps[str(runs[0])]
-    table = summary(rows)
+    table = {**summary(rows), "runs": run_ratios(rows, control_rows)}
     text = markdown(table, model, step)
     print(text)
     report = {
@@ -196,6 +290,7 @@ def evaluate(
         "step": step,
         "bounds": settings,
         "target_ratio": TARGET_RATIO,
+        "control": None if control is None else str(control),
         **table,
         "breasts": rows,
     }
@@ -221,13 +316,17 @@ def main(argv: list[str] | None = None) -> None:
         "--out", type=Path, default=Path("outputs/conditions_generalisation"),
         help="folder of <model>_<step>.md and .json",
     )  # fmt: skip
+    ap.add_argument(
+        "--control", type=Path, default=None,
+        help="this benchmark's JSON of a control model on the same breasts",
+    )  # fmt: skip
     args = ap.parse_args(argv)
     try:
         bounds = check_bounds(json.loads(args.bounds)) if args.bounds is not None else None
     except ValueError as exc:  # JSON or bounds
         raise SystemExit(f"--bounds: {exc}") from exc
     try:
-        files = evaluate(args.runs, args.model, bounds, args.out)
+        files = evaluate(args.runs, args.model, bounds, args.out, args.control)
     except (ValueError, FileNotFoundError) as exc:
         raise SystemExit(f"error: {exc}") from exc
     print("written:", *files)

@@ -269,6 +269,36 @@ def test_benchmark_groups_held_out_and_in_range_breasts_by_view(views, tmp_path)
     text = md.read_text()
     assert "| cc | held out | 3 | (1.500, 1.500) +- 0.000 |" in text
     assert "Worst ratio: 2.00x (target <= 1.25x: missed)." in text
+    runs = {r["run"]: r for r in report["runs"]}
+    fold0 = str(tmp_path / "runs" / "fold0")
+    assert runs["all"]["last_step"] == pytest.approx(1.75, rel=1e-5)
+    assert (runs[fold0]["in_range"], runs[fold0]["held_out"]) == (4, 2)
+    assert runs[fold0]["all_steps"] == pytest.approx(1.75, rel=1e-5)
+    assert "control_all_steps" not in runs["all"]
+    # a control that scored fold 0's breasts only, 1.4x worse on its held-out ones
+    control = tmp_path / "control.json"
+    rows = [
+        {
+            **r,
+            "all_steps": 1.4 if r["held_out"] else 1.0,
+            "last_step": 2.8 if r["held_out"] else 2.0,
+        }
+        for r in report["breasts"]
+        if r["run"] == fold0
+    ]
+    control.write_text(json.dumps({"breasts": rows}))
+    md, js = bench.evaluate([str(tmp_path / "runs" / "fold*")], None, None, out, control)
+    (entry, fold) = json.loads(js.read_text())["runs"]
+    assert entry["run"] == "all" and fold["run"] == fold0 and entry["held_out"] == 2
+    assert entry["control_last_step"] == pytest.approx(1.4, rel=1e-5)
+    assert entry["controlled_all_steps"] == pytest.approx(1.25, rel=1e-5)
+    assert "| all | 4 / 2 | 1.75x / 1.75x | 1.40x / 1.40x | 1.25x / 1.25x |" in md.read_text()
+    control.write_text(json.dumps({"breasts": [{**rows[0], "breast": "P9999_L"}]}))
+    with pytest.raises(ValueError, match="--control: it scored none of these breasts"):
+        bench.evaluate([str(tmp_path / "runs" / "fold*")], None, None, out, control)
+    control.write_text(json.dumps({"groups": []}))
+    with pytest.raises(ValueError, match=r"control\.json: not a conditions_generalisation JSON"):
+        bench.evaluate([str(tmp_path / "runs" / "fold*")], None, None, out, control)
     # other bounds given: every breast in range, no ratio
     _, js = bench.evaluate(
         [str(tmp_path / "runs" / "fold*")], "mesh_gnn", {"friction": (0.0, 1.0)}, out
