@@ -9,9 +9,9 @@ the mean (the issue's target for the cohort v2: at most 1.25x).
     python benchmarks/conditions_generalisation.py RUN [RUN ...] --model xgboost \
         --bounds '{"young_fat": [700, 2600], "young_gland": [1600, 5900]}' --out outputs/mine
 
-Each run folder is a train.py run (k-fold folds of one cross-validation, one step) with
-``predictions/<model>.npz`` (predicted from the run's model files when missing,
-`mammo_net.predictor.predict_run`). The model is by default the run's network (its
+Each run folder is a finished train.py run (its ``results.md`` written; k-fold folds of one
+cross-validation, one step) with ``predictions/<model>.npz`` (predicted from the run's model
+files when missing, `mammo_net.predictor.predict_run`). The model is by default the run's network (its
 ``model._target_``: ``mesh_gnn``, ``att_blstm``), the bounds by default each run's own
 ``data.train_conditions``; both are read from the plain values of ``.hydra/config.yaml``,
 nothing in it is instantiated. A breast's error is the report's (`mammo_net.report_data.collect`,
@@ -77,7 +77,19 @@ def run_network(run: Path) -> str:
 
 def run_rows(run: Path, model: str, bounds: Bounds | None) -> tuple[str, Bounds, list[dict]]:
     """(step, bounds, per-breast rows) of one run: each validation breast's errors (mm), view,
-    conditions and whether they lie outside ``bounds`` (default: the run's own)."""
+    conditions and whether they lie outside ``bounds`` (default: the run's own).
+
+    Raises
+    ------
+    ValueError
+        The run has no ``results.md``: train.py writes it last, so the run is still training
+        (or was killed), and predicting it would use a partial checkpoint.
+    """
+    if not (run / "results.md").is_file():
+        raise ValueError(
+            f"{run / 'results.md'}: not found: train.py has not finished this run (it writes "
+            "results.md last); a run still training would be predicted from a partial checkpoint"
+        )
     dm = TrajectoryDataModule.from_run(run)
     config = run / ".hydra" / "config.yaml"
     bounds = bounds if bounds is not None else dm.bounds

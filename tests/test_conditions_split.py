@@ -254,6 +254,10 @@ def test_benchmark_groups_held_out_and_in_range_breasts_by_view(views, tmp_path)
         np.savez(run / "predictions" / "mesh_gnn.npz", **predictions)
     bench = _benchmark()
     out = tmp_path / "out"
+    with pytest.raises(ValueError, match=r"fold0/results\.md: not found: train\.py has not"):
+        bench.evaluate([str(tmp_path / "runs" / "fold*")], None, None, out)
+    for fold in folds:
+        (tmp_path / "runs" / f"fold{fold}" / "results.md").write_text("finished\n")
     md, js = bench.evaluate([str(tmp_path / "runs" / "fold*")], None, None, out)
     report = json.loads(js.read_text())
     assert report["model"] == "mesh_gnn" and report["step"] == "compression"
