@@ -181,12 +181,13 @@ def run_ratios(rows: list[dict], control: list[dict] | None = None) -> list[dict
             "in_range": sum(not r["held_out"] for r in mine),
             "held_out": sum(r["held_out"] for r in mine),
         }
+        # the control's rows of these breasts, grouped as the model's
+        paired = [
+            {**theirs[r["breast"], r["view"]], "held_out": r["held_out"]} for r in theirs and mine
+        ]
         for m in METRICS:
             entry[m] = ratio = held_out_ratio(mine, m)
             if control is not None:
-                paired = [
-                    {**theirs[r["breast"], r["view"]], "held_out": r["held_out"]} for r in mine
-                ]
                 entry[f"control_{m}"] = base = held_out_ratio(paired, m)
                 entry[f"controlled_{m}"] = ratio / base if ratio and base else None
         entries.append(entry)
