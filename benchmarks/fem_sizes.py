@@ -8,7 +8,8 @@ The breast's segmentation (the cohort's generator) is meshed with ``target_eleme
 each size (`fem.breasts.mesh.Mesher`, tolerance a ninth of it) and simulated with the paper's
 settings (`fem.engine.simulation.Simulation`: ``--steps`` recorded unloaded-state and
 compression steps, by default the paper's 100 and 70, to the breast's target ratio, friction
-0.25, skin membrane, sliding chest wall, cc view) and ``--linear-solver``. ``--against U C``
+``--friction``, by default the paper's 0.25 (0: frictionless, what friction costs), skin
+membrane, sliding chest wall, cc view) and ``--linear-solver``. ``--against U C``
 also runs each mesh with U and C steps (untimed in the table) and reports how far the two final
 compressed shapes lie apart (RMS and maximum node distance, mm): what fewer recorded steps, a
 registration's choice, cost in accuracy (friction makes the answer depend on the load path). Each size runs in a fresh process, so its peak resident memory is its
@@ -35,7 +36,7 @@ from fem import CONFIG_DIR
 from fem.contract.atomic import write_json
 from fem.engine.constraints import FramedModel
 from fem.engine.linear import resolve_backend
-from fem.engine.simulation import Simulation, SimulationFailed
+from fem.engine.simulation import FRICTION, Simulation, SimulationFailed
 
 
 def counted(counts: dict[str, int]) -> None:
@@ -64,10 +65,16 @@ def counted(counts: dict[str, int]) -> None:
     solver.ReusedFactorization._factorize = factorize_counted
 
 
-def run(name: str, elements: int, linear_solver: str, steps: tuple[int, int] = (100, 70)) -> dict:
+def run(
+    name: str,
+    elements: int,
+    linear_solver: str,
+    steps: tuple[int, int] = (100, 70),
+    friction: float = FRICTION,
+) -> dict:
     """Mesh ``name`` at about ``elements`` tetrahedra and simulate both steps with ``steps``
-    recorded (unloaded, compression) steps (in a worker); the row and the final compressed
-    shape (N, 3) under ``"final"``."""
+    recorded (unloaded, compression) steps and the plates' Coulomb ``friction`` (in a worker);
+    the row and the final compressed shape (N, 3) under ``"final"``."""
     generator = instantiate(OmegaConf.load(Path(CONFIG_DIR) / "generator" / "default.yaml"))
     mesher = OmegaConf.load(Path(CONFIG_DIR) / "mesher" / "default.yaml")
     mesher.target_elements, mesher.tolerance = elements, max(elements // 9, 250)
@@ -82,11 +89,15 @@ def run(name: str, elements: int, linear_solver: str, steps: tuple[int, int] = (
         "dofs": 3 * traj.n_nodes,
         "linear_solver": resolve_backend(linear_solver, 3 * traj.n_nodes),
         "steps": list(steps),
+        "friction": friction,
     }
     t0 = time.perf_counter()
     try:
         result = Simulation(
-            linear_solver=linear_solver, unloaded_steps=steps[0], compression_steps=steps[1]
+            linear_solver=linear_solver,
+            unloaded_steps=steps[0],
+            compression_steps=steps[1],
+            friction=friction,
         )(traj)
     except SimulationFailed as exc:
         return {**row, "failed": str(exc), "seconds": time.perf_counter() - t0, **counts}
@@ -114,6 +125,7 @@ def main() -> None:
     ap.add_argument("--linear-solver", default="auto", help="auto | superlu | pardiso")
     ap.add_argument("--steps", nargs=2, type=int, default=[100, 70], metavar=("U", "C"))
     ap.add_argument("--against", nargs=2, type=int, default=None, metavar=("U", "C"))
+    ap.add_argument("--friction", type=float, default=FRICTION, help="0: frictionless")
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
     rows = []
@@ -124,9 +136,11 @@ def main() -> None:
     )
     print("| --- " * 13 + "|")
     for elements in args.elements:
-        row = in_fresh_process(args.breast, elements, args.linear_solver, args.steps)
+        row = in_fresh_process(args.breast, elements, args.linear_solver, args.steps, args.friction)
         if args.against and "failed" not in row:
-            other = in_fresh_process(args.breast, elements, args.linear_solver, args.against)
+            other = in_fresh_process(
+                args.breast, elements, args.linear_solver, args.against, args.friction
+            )
             if "failed" not in other:
                 d = np.linalg.norm(row["final"] - other["final"], axis=1)
                 row["against"] = {
@@ -159,10 +173,12 @@ def main() -> None:
         print(f"\ntime ~ n^{exponent:.2f} (n: tetrahedra)")
 
 
-def in_fresh_process(name: str, elements: int, linear_solver: str, steps) -> dict:
+def in_fresh_process(
+    name: str, elements: int, linear_solver: str, steps, friction: float = FRICTION
+) -> dict:
     """`run` in a fresh process: its peak resident memory is its own."""
     with ProcessPoolExecutor(max_workers=1, max_tasks_per_child=1) as pool:
-        return pool.submit(run, name, elements, linear_solver, tuple(steps)).result()
+        return pool.submit(run, name, elements, linear_solver, tuple(steps), friction).result()
 
 
 def report(args: argparse.Namespace, rows: list[dict]) -> dict:
@@ -184,6 +200,7 @@ def report(args: argparse.Namespace, rows: list[dict]) -> dict:
             f"--linear-solver {args.linear_solver}",
             f"--steps {args.steps[0]} {args.steps[1]}",
             *([f"--against {args.against[0]} {args.against[1]}"] if args.against else []),
+            *([f"--friction {args.friction}"] if args.friction != FRICTION else []),
         ]
     )
     return {
