@@ -35,6 +35,7 @@ class BreastTruth:
     surface: NDArray[np.bool_]  # (N,) skin nodes
     compression_ratio: NDArray[np.float64] | None  # (T,) compression step only
     volume_cm3: float
+    motion: float  # RMS over nodes of the last step's displacement from the step's start, mm
     fe_seconds: float  # the FE solver's wall time for this step, s
     path: Path
     conditions: dict[str, float | str] | None  # the simulation's, if recorded
@@ -76,6 +77,8 @@ def load_truth(path: Path, step: str, name: str) -> BreastTruth:
     if not len(positions):
         raise ValueError(f"{path}: field {step!r} has no simulated steps")
     seconds = traj.metadata.get("simulation", {}).get("seconds", {}).get(step, float("nan"))
+    # the step starts from the prone shape (unloaded state) or the unloaded state's last step
+    start = traj.unloaded[-1] if step == "compression" and len(traj.unloaded) else traj.points
     return BreastTruth(
         name=name,
         positions=positions.transpose(1, 0, 2),
@@ -83,6 +86,7 @@ def load_truth(path: Path, step: str, name: str) -> BreastTruth:
         surface=(traj.node_flags & NodeFlag.SKIN) > 0,
         compression_ratio=traj.compression_ratio if step == "compression" else None,
         volume_cm3=float(traj.metadata.get("breast_volume_cm3", float("nan"))),
+        motion=float(np.sqrt(((positions[-1] - start) ** 2).sum(-1).mean())),
         fe_seconds=float(seconds),
         path=path,
         conditions=recorded_conditions(traj.metadata),

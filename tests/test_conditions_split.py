@@ -270,8 +270,14 @@ def test_benchmark_groups_held_out_and_in_range_breasts_by_view(views, tmp_path)
     ratios = {r["view"]: r for r in report["ratios"]}
     assert ratios["all"]["all_steps"] == pytest.approx(1.75, rel=1e-5)
     assert ratios["mlo"]["last_step"] == pytest.approx(2.0, rel=1e-5)
+    # every breast is the same tiny one: relative to its motion the ratio is the absolute one
+    traj = tiny_trajectory("L")
+    motion = np.sqrt(((traj.compressed[-1] - traj.unloaded[-1]) ** 2).sum(-1).mean())
+    assert [r["motion"] for r in report["breasts"]] == pytest.approx([motion] * 12, rel=1e-6)
+    assert ratios["mlo"]["last_step_relative"] == pytest.approx(2.0, rel=1e-5)
     text = md.read_text()
     assert "| cc | held out | 3 | (1.500, 1.500) +- 0.000 |" in text
+    assert "| all | 1.75x | 1.75x | 1.75x |" in text
     assert "Worst ratio: 2.00x (target <= 1.25x: missed)." in text
     runs = {r["run"]: r for r in report["runs"]}
     fold0 = str(tmp_path / "runs" / "fold0")
