@@ -77,8 +77,7 @@ def load_truth(path: Path, step: str, name: str) -> BreastTruth:
     if not len(positions):
         raise ValueError(f"{path}: field {step!r} has no simulated steps")
     seconds = traj.metadata.get("simulation", {}).get("seconds", {}).get(step, float("nan"))
-    # the step starts from the prone shape (unloaded state) or the unloaded state's last step
-    start = traj.unloaded[-1] if step == "compression" and len(traj.unloaded) else traj.points
+    start = traj.reference_shape if step == "compression" else traj.points  # the step's start
     return BreastTruth(
         name=name,
         positions=positions.transpose(1, 0, 2),
