@@ -82,6 +82,8 @@ def train(cfg: DictConfig) -> float:
     dm.prepare_data()
     dm.setup()
     model.adapt(dm)
+    if cfg.get("init_from"):
+        model.start_from(to_absolute_path(str(cfg.init_from)))
     # entries without _target_: a paper experiment's parameters of a callback left out
     callbacks = [instantiate(c) for c in cfg.callbacks.values() if c and "_target_" in c]
     baselines = [c for c in callbacks if isinstance(c, TreeBaseline)]

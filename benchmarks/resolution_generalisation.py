@@ -9,6 +9,8 @@ compared with the FE on the same mesh.
     nohup python benchmarks/resolution_generalisation.py --factors 2 4 \
         --out results/resolution/mesh_gnn_fold0.json > resolution.log 2>&1 &
     python benchmarks/resolution_generalisation.py --no-simulate        # evaluate what is done
+    python benchmarks/resolution_generalisation.py --limit 26 --train-breasts 30 --workers 2 \
+        --no-evaluate     # also 30 training breasts at 2x and 4x, for data.augment_dir
     python benchmarks/resolution_generalisation.py \
         --unloaded outputs/.../unloaded/checkpoints/best.ckpt \
         --compression outputs/.../compression/checkpoints/best.ckpt   # another model
@@ -23,7 +25,15 @@ atomically and skipped when present, so a killed run resumes; ``<out-root>/<fact
 cohort_config.json`` records the settings and a folder made with others is refused
 (`fem.cohort.check_settings`). Breasts are done one after the other, every factor of a breast
 before the next breast, so a run stopped early still leaves breasts finished at every
-resolution. A breast whose meshing or FE fails is reported (name, factor, reason) and skipped.
+resolution; ``--workers`` processes (`fem.breasts.pool.worker_pool`, one BLAS thread each as in
+the cohort) take the (breast, factor) tasks in that order. A breast whose meshing or FE fails
+is reported (name, factor, reason) and skipped.
+
+Training at several resolutions: ``--train-breasts N`` also remeshes and simulates N training
+breasts of the same split (evenly spaced in its sorted list) into the same folders; a model
+trained with ``data.augment_dir=[<out-root>/2x/trajectories,<out-root>/4x/trajectories]``
+learns from those of its training patients only (`datamodules.trajectories`: the validation
+breasts in these folders are never trained on) and is then evaluated here like any other.
 The native row is the cohort's own trajectories (``<cohort>/trajectories/``).
 
 Evaluation, on the breasts finished at every resolution only (paired): the two steps are
@@ -43,6 +53,7 @@ import argparse
 import json
 import statistics
 import time
+from concurrent.futures import as_completed
 from pathlib import Path
 
 import numpy as np
@@ -54,6 +65,7 @@ from datamodules.graphs import MeshGraphDataModule
 from fem.breasts.cohort_simulation import simulate_breast
 from fem.breasts.mesh import Mesher
 from fem.breasts.phantom import PhantomGenerator
+from fem.breasts.pool import one_blas_thread, worker_pool
 from fem.cohort import check_settings, make_breast
 from fem.contract.quality import signed_volume
 from fem.contract.trajectory import Trajectory
@@ -73,13 +85,13 @@ METRICS = (
 )
 
 
-def validation_names(run: Path) -> list[str]:
-    """The validation breasts of ``run``'s split (the graph data module it was trained with;
-    its caches are reused when current)."""
+def split_names(run: Path) -> tuple[list[str], list[str]]:
+    """The training and validation breasts of ``run``'s split (the graph data module it was
+    trained with, its own data folder only; its caches are reused when current)."""
     dm = MeshGraphDataModule.from_run(run)
     dm.prepare_data()
     dm.setup()
-    return [b.name for b in dm.val]
+    return [b.name for b in dm.train if "@" not in b.name], [b.name for b in dm.val]
 
 
 def cohort_settings(cohort: Path, factor: int) -> DictConfig:
@@ -134,32 +146,49 @@ def run_breast(
     return None
 
 
-def simulate_resolutions(
-    cohort: Path, out_root: Path, factors: list[int], names: list[str]
-) -> list[dict]:
-    """Mesh and simulate every breast at every factor (resumable); returns the failures."""
-    builds = {}
-    for factor in factors:
+#: A worker process's generator, mesher and simulation per (cohort, factor), built once.
+_BUILDS: dict[tuple[Path, int], tuple[PhantomGenerator, Mesher, Simulation]] = {}
+
+
+@one_blas_thread
+def run_task(cohort: Path, folder: Path, factor: int, name: str) -> str | None:
+    """`run_breast` at ``factor`` in ``folder`` (a worker's task)."""
+    if (cohort, factor) not in _BUILDS:
         cfg = cohort_settings(cohort, factor)
-        folder = out_root / f"{factor}x"
-        folder.mkdir(parents=True, exist_ok=True)
-        check_settings(folder, cfg)
-        builds[factor] = (
-            instantiate(cfg.generator),
-            instantiate(cfg.mesher),
-            instantiate(cfg.simulation),
-            folder,
+        _BUILDS[cohort, factor] = tuple(
+            instantiate(c) for c in (cfg.generator, cfg.mesher, cfg.simulation)
         )
+    return run_breast(*_BUILDS[cohort, factor], name, folder)
+
+
+def simulate_resolutions(
+    cohort: Path, out_root: Path, factors: list[int], names: list[str], workers: int = 1
+) -> list[dict]:
+    """Mesh and simulate every breast at every factor on ``workers`` processes (resumable);
+    returns the failures."""
+    folders = {}
+    for factor in factors:
+        folders[factor] = out_root / f"{factor}x"
+        folders[factor].mkdir(parents=True, exist_ok=True)
+        check_settings(folders[factor], cohort_settings(cohort, factor))
+    tasks = [(name, factor) for name in names for factor in factors]
     failures = []
-    with tqdm(total=len(names) * len(factors), unit="mesh", desc=f"FE -> {out_root}") as bar:
-        for name in names:
-            for factor in factors:
-                bar.set_postfix_str(f"{name} {factor}x")
-                reason = run_breast(*builds[factor][:3], name, builds[factor][3])
-                if reason is not None:
-                    failures.append({"breast": name, "factor": factor, "reason": reason})
-                    tqdm.write(f"FAILED {name} at {factor}x: {reason}")
-                bar.update()
+    with (
+        worker_pool(workers) as pool,
+        tqdm(total=len(tasks), unit="mesh", desc=f"FE -> {out_root}") as bar,
+    ):
+        futures = {
+            pool.submit(run_task, cohort, folders[factor], factor, name): (name, factor)
+            for name, factor in tasks
+        }
+        for future in as_completed(futures):
+            name, factor = futures[future]
+            reason = future.result()
+            if reason is not None:
+                failures.append({"breast": name, "factor": factor, "reason": reason})
+                tqdm.write(f"FAILED {name} at {factor}x: {reason}")
+            bar.set_postfix_str(f"{name} {factor}x")
+            bar.update()
     return failures
 
 
@@ -257,6 +286,14 @@ def main() -> None:
     ap.add_argument("--factors", type=int, nargs="+", default=[2, 4])
     ap.add_argument("--limit", type=int, default=None, help="the first breasts only")
     ap.add_argument(
+        "--train-breasts", type=int, default=0,
+        help="also mesh and simulate this many training breasts (for data.augment_dir)",
+    )  # fmt: skip
+    ap.add_argument("--workers", type=int, default=1, help="processes for meshing and FE")
+    ap.add_argument(
+        "--no-evaluate", action="store_true", help="mesh and simulate only; predict nothing"
+    )  # fmt: skip
+    ap.add_argument(
         "--no-simulate", action="store_true",
         help="evaluate the breasts already simulated; mesh and simulate nothing",
     )  # fmt: skip
@@ -264,10 +301,26 @@ def main() -> None:
     args = ap.parse_args()
     if any(f < 2 for f in args.factors):
         raise SystemExit(f"--factors must be integers >= 2, got {args.factors}")
-    names = validation_names(args.split_run)[: args.limit]
+    if args.train_breasts < 0:
+        raise SystemExit(f"--train-breasts must be >= 0, got {args.train_breasts}")
+    train, names = split_names(args.split_run)
+    if args.train_breasts > len(train):
+        raise SystemExit(f"--train-breasts: the split has {len(train)} training breasts")
+    names = names[: args.limit]
+    spaced = np.linspace(0, len(train) - 1, args.train_breasts).round().astype(int)
     failures = []
     if not args.no_simulate:
-        failures = simulate_resolutions(args.cohort, args.out_root, args.factors, names)
+        failures = simulate_resolutions(
+            args.cohort,
+            args.out_root,
+            args.factors,
+            names + [train[i] for i in sorted(set(spaced.tolist()))],
+            args.workers,
+        )
+    if args.no_evaluate:
+        for f in failures:
+            print(f"failed: {f['breast']} at {f['factor']}x: {f['reason']}")
+        return
     folders = {NATIVE: args.cohort / "trajectories"}
     folders |= {f"{f}x": args.out_root / f"{f}x" / "trajectories" for f in args.factors}
     paired = [n for n in names if all((d / f"{n}.npz").exists() for d in folders.values())]

@@ -16,7 +16,10 @@ trajectory folders (the cohort v2's views: the same breasts in ``trajectories/``
 ``trajectories_mlo/``; or cohorts meshed at several resolutions) make one data set whose
 breasts are named ``P0007_L@<label>``, the label being the folder's path below the folders'
 common parent (`folder_labels`); a patient's breasts of every folder stay on one side of the
-split.
+split. Augmentation folders (``augment_dir``: the same breasts remeshed at other resolutions and
+simulated there) add training breasts only: their breasts of training patients join the
+training set, those of validation patients are left out, and the split and the validation set
+are those of ``data_dir`` alone.
 """
 
 from __future__ import annotations
@@ -51,6 +54,7 @@ STEPS = {"unloaded": unloaded_features, "compression": compression_features}
 #: (a list: of str).
 RUN_SETTINGS: dict[str, tuple[type, ...]] = {
     "data_dir": (str, list),
+    "augment_dir": (str, list, type(None)),
     "step": (str,),
     "split": (str, type(None)),
     "fold": (int, type(None)),
@@ -97,6 +101,8 @@ class Source:
     name: str
     path: Path
     stem: Path
+    #: from an augmentation folder (training breasts only)
+    augment: bool = False
 
 
 def data_folders(data_dir: DataDir) -> list[Path]:
@@ -272,6 +278,12 @@ class TrajectoryDataModule(L.LightningDataModule):
         ``young_muscle``, ``young_skin`` in Pa, ``friction``, ``angle`` in degrees, mlo breasts
         only), bounds included: a training breast outside one is left out of training; the
         validation breasts are all kept, in and out of the bounds.
+    augment_dir : str or list of str, optional
+        Folders of more trajectories for training only (e.g. the cohort's breasts remeshed at
+        2x and 4x the elements, `benchmarks/resolution_generalisation.py`): the breasts of
+        training patients join the training set, named ``<file stem>@<label>`` (labels over
+        ``data_dir`` and these folders together); those of validation patients are left out.
+        The split is drawn over ``data_dir``'s patients alone.
     """
 
     #: A breast's cache is complete once its file of this suffix exists (written last).
@@ -292,6 +304,7 @@ class TrajectoryDataModule(L.LightningDataModule):
         num_workers: int = 0,
         cache_dir: str | None = None,
         train_conditions: Mapping[str, Sequence[float]] | None = None,
+        augment_dir: DataDir | None = None,
     ) -> None:
         super().__init__()
         if step not in STEPS:
@@ -311,6 +324,7 @@ class TrajectoryDataModule(L.LightningDataModule):
                 f"data.fold={fold} selects a k-fold validation fold; the one-fold split has none"
             )
         folders = data_folders(data_dir)
+        extra = [] if augment_dir is None else data_folders(augment_dir)
         self.bounds = check_bounds(train_conditions)
         # the resolved values, stated, the folders as given (a relative folder stays relative
         # in checkpoints); a subclass's own arguments are not collected
@@ -319,6 +333,7 @@ class TrajectoryDataModule(L.LightningDataModule):
                 "data_dir": os.fspath(data_dir)
                 if isinstance(data_dir, str | os.PathLike)
                 else [os.fspath(d) for d in data_dir],
+                "augment_dir": None if augment_dir is None else [os.fspath(d) for d in extra],
                 "step": step,
                 "split": split,
                 "fold": fold,
@@ -334,12 +349,18 @@ class TrajectoryDataModule(L.LightningDataModule):
             }
         )
         self.data_dirs = [f.absolute() for f in folders]
-        #: per folder, the suffix of its breasts' names (none for one folder)
-        self.labels = folder_labels(folders) if len(folders) > 1 else [""]
+        self.augment_dirs = [f.absolute() for f in extra]
+        labels = folder_labels(folders + extra) if len(folders + extra) > 1 else [""]
+        #: per data folder, the suffix of its breasts' names (none for one folder)
+        self.labels = labels[: len(folders)] if len(folders) > 1 else [""]
+        #: per augmentation folder, the same (always one)
+        self.augment_labels = labels[len(folders) :]
+        every = self.data_dirs + self.augment_dirs
         if not cache_dir:
-            self.caches = [f / "cache" for f in self.data_dirs]
+            self.caches = [f / "cache" for f in every]
         else:
-            self.caches = [Path(cache_dir).absolute() / label for label in self.labels]
+            root = Path(cache_dir).absolute()
+            self.caches = [root / label for label in self.labels + self.augment_labels]
         self.feature_names = STEP_FEATURES[step]
         self.train: list[Breast] = []
         self.val: list[Breast] = []
@@ -406,13 +427,18 @@ class TrajectoryDataModule(L.LightningDataModule):
             A folder has no trajectory; the message names it.
         """
         result = []
-        for folder, cache, label in zip(self.data_dirs, self.caches, self.labels, strict=True):
+        folders = self.data_dirs + self.augment_dirs
+        labels = self.labels + self.augment_labels
+        for i, (folder, cache, label) in enumerate(zip(folders, self.caches, labels, strict=True)):
             files = sorted(folder.glob("P*_[LR].npz"))
             if not files:
                 raise FileNotFoundError(f"{folder}: no simulated trajectories (P*_[LR].npz)")
             result += [
                 Source(
-                    f"{f.stem}@{label}" if label else f.stem, f, cache / self.cache_kind / f.stem
+                    f"{f.stem}@{label}" if label else f.stem,
+                    f,
+                    cache / self.cache_kind / f.stem,
+                    augment=i >= len(self.data_dirs),
                 )
                 for f in files
             ]
@@ -424,16 +450,15 @@ class TrajectoryDataModule(L.LightningDataModule):
         Raises
         ------
         ValueError
-            With several folders, ``name`` names none of them.
+            ``name`` names none of the folders (data and augmentation).
         """
-        if len(self.data_dirs) == 1:
-            return self.data_dirs[0] / f"{name}.npz"
         stem, _, label = name.partition("@")
-        for d, own in zip(self.data_dirs, self.labels, strict=True):
+        folders = self.data_dirs + self.augment_dirs
+        for d, own in zip(folders, self.labels + self.augment_labels, strict=True):
             if own == label:
                 return d / f"{stem}.npz"
         raise ValueError(
-            f"breast {name!r}: none of the data folders {[str(d) for d in self.data_dirs]} "
+            f"breast {name!r}: none of the data folders {[str(d) for d in folders]} "
             "(breasts of several folders are named <file stem>@<folder path below their "
             f"common parent>: {self.labels})"
         )
@@ -454,8 +479,10 @@ class TrajectoryDataModule(L.LightningDataModule):
         return result
 
     def setup(self, stage: str | None = None) -> None:
+        augment = {s.name for s in self.sources() if s.augment}
         breasts = self.breasts()
-        site = {b.patient: b.site for b in breasts}
+        own = [b for b in breasts if b.name not in augment]
+        site = {b.patient: b.site for b in own}
         patients = np.array(sorted(site))
         sites = [site[p] for p in patients]
         hp = self.hparams
@@ -464,8 +491,9 @@ class TrajectoryDataModule(L.LightningDataModule):
         else:
             fold = k_folds(patients, sites, hp.n_folds, hp.seed)
             val = patients[fold == (hp.fold or 0)]
-        self.val = [b for b in breasts if b.patient in set(val.tolist())]
-        self.train = [b for b in breasts if b.patient not in set(val.tolist())]
+        held = set(val.tolist())
+        self.val = [b for b in own if b.patient in held]
+        self.train = [b for b in breasts if b.patient not in held]
         folders = ", ".join(map(str, self.data_dirs))
         if not self.train or not self.val:
             raise ValueError(

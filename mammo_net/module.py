@@ -170,6 +170,29 @@ class NetworkModule(L.LightningModule):
         model.on_load_checkpoint(checkpoint)
         return model.eval()
 
+    def start_from(self, path: str | Path) -> None:
+        """Take the weights (and the buffers: a feature normalisation) of a trained network's
+        checkpoint, read by `from_checkpoint`, to fit on from them (fine-tuning, e.g. on
+        breasts meshed at other resolutions: the optimizer, the schedule and the epochs start
+        afresh). Call it after `adapt`, so that the stored normalisation stays the weights'.
+
+        Raises
+        ------
+        ValueError
+            Another network, step or architecture than this one's; the message names the
+            file and the settings.
+        """
+        trained = NetworkModule.from_checkpoint(path)
+        if type(trained) is not type(self) or trained.hparams.step != self.hparams.step:
+            raise ValueError(
+                f"{path}: a {trained.name} of the {trained.hparams.step} step; init_from must "
+                f"name a {self.name} of the {self.hparams.step} step (model=, data.step=)"
+            )
+        try:
+            self.load_state_dict(trained.state_dict(), strict=True)
+        except RuntimeError as exc:  # other layer sizes
+            raise ValueError(f"{path}: its network's settings are not model.*'s ({exc})") from exc
+
     def shared_step(self, batch: Any, stage: str) -> torch.Tensor:
         raise NotImplementedError
 

@@ -110,6 +110,37 @@ def test_folders_of_one_name_are_labelled_by_their_path(views, tmp_path):
         dm.source("P0003_R@trajectories")
 
 
+@pytest.mark.parametrize("cls", [TrajectoryDataModule, MeshGraphDataModule])
+def test_augmentation_folders_add_training_breasts_only(views, tmp_path, cls):
+    """``augment_dir`` (the breasts remeshed at other resolutions): its breasts of training
+    patients join the training set under their folder's label, those of validation patients
+    are left out; the split, the validation set and the data folder's names stay as without."""
+    plain = _setup(cls, views[:1])
+    finer = tmp_path / "resolution" / "2x" / "trajectories"
+    finer.mkdir(parents=True)
+    train, val = [b.name for b in plain.train[:3]], [b.name for b in plain.val[:2]]
+    for name in train + val:
+        shutil.copy(views[0] / f"{name}.npz", finer / f"{name}.npz")
+    dm = _setup(cls, views[:1], augment_dir=[str(finer)])
+    assert [b.name for b in dm.val] == [b.name for b in plain.val]
+    added = sorted(b.name for b in dm.train if "@" in b.name)
+    assert added == [f"{name}@resolution-2x-trajectories" for name in sorted(train)]
+    assert {b.name for b in dm.train} - set(added) == {b.name for b in plain.train}
+    assert dm.source(added[0]) == finer.absolute() / f"{sorted(train)[0]}.npz"
+    assert dm.source(val[0]) == views[0].absolute() / f"{val[0]}.npz"
+    assert (finer / "cache" / dm.cache_kind / f"{train[0]}.json").exists()
+    assert dm.hparams.augment_dir == [str(finer)]
+    run = _run_folder(
+        tmp_path / "run",
+        {"cohort": views[0].parent, "data_dir": str(views[0]), "fold": 1,
+         "augment_dir": [str(finer)]},
+    )  # fmt: skip
+    assert TrajectoryDataModule.from_run(run).augment_dirs == [finer.absolute()]
+    bad = _run_folder(tmp_path / "bad", {"cohort": tmp_path, "data_dir": "x", "augment_dir": 3})
+    with pytest.raises(ValueError, match=r"field 'data\.augment_dir' must be str or list of str"):
+        TrajectoryDataModule.from_run(bad)
+
+
 def test_data_folders_refused(views, tmp_path):
     with pytest.raises(ValueError, match=r"given twice or holding another"):
         TrajectoryDataModule([str(views[0]), str(views[1]), str(views[0])])

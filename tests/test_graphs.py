@@ -150,6 +150,17 @@ def test_model_trains_on_a_tiny_cohort_and_improves(trajectory_folder, tmp_path)
         torch.testing.assert_close(again(batch), model.eval()(batch))
     with pytest.raises(ValueError, match="a checkpoint of the network 'mesh_gnn', not a Surr"):
         SurrogateModule.from_checkpoint(path)
+    # init_from: a fresh network fine-tunes from those weights; another step or size is refused
+    torch.manual_seed(1)
+    fresh = MeshGraphModule("compression", hidden=16, layers=2, slices=4, heads=2,
+                            decoder_hidden=16)  # fmt: skip
+    fresh.start_from(path)
+    with torch.no_grad():
+        torch.testing.assert_close(fresh.eval()(batch), model.eval()(batch))
+    with pytest.raises(ValueError, match=r"gnn\.ckpt: a mesh_gnn of the compression step; init"):
+        _model("unloaded").start_from(path)
+    with pytest.raises(ValueError, match=r"gnn\.ckpt: its network's settings are not model"):
+        MeshGraphModule("compression", hidden=8, layers=2, slices=4, heads=2).start_from(path)
     # predictions of a remeshed breast (8x the elements) and of other conditions run
     surrogate = load_surrogate(path, "compression")
     assert surrogate.graph and surrogate.name == "mesh_gnn"
