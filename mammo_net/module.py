@@ -69,6 +69,8 @@ class NetworkModule(L.LightningModule):
     """
 
     name = "network"
+    #: Settings of the fit, not of the network: a fine-tune (`start_from`) may change them.
+    fit_settings = ("lr", "lr_schedule", "train_steps")
 
     def __init__(self) -> None:
         super().__init__()
@@ -188,10 +190,24 @@ class NetworkModule(L.LightningModule):
                 f"{path}: a {trained.name} of the {trained.hparams.step} step; init_from must "
                 f"name a {self.name} of the {self.hparams.step} step (model=, data.step=)"
             )
+        network = set(self.hparams) | set(trained.hparams)
+        differ = sorted(
+            k
+            for k in network - set(self.fit_settings)
+            if self.hparams.get(k) != trained.hparams.get(k)
+        )
+        if differ:
+            raise ValueError(
+                f"{path}: its network was built with other settings: "
+                + ", ".join(
+                    f"model.{k}={trained.hparams.get(k)!r} (here {self.hparams.get(k)!r})"
+                    for k in differ
+                )
+            )
         try:
             self.load_state_dict(trained.state_dict(), strict=True)
-        except RuntimeError as exc:  # other layer sizes
-            raise ValueError(f"{path}: its network's settings are not model.*'s ({exc})") from exc
+        except RuntimeError as exc:  # cannot happen with equal settings; said if it does
+            raise ValueError(f"{path}: its weights do not fit this network ({exc})") from exc
 
     def shared_step(self, batch: Any, stage: str) -> torch.Tensor:
         raise NotImplementedError

@@ -159,8 +159,14 @@ def test_model_trains_on_a_tiny_cohort_and_improves(trajectory_folder, tmp_path)
         torch.testing.assert_close(fresh.eval()(batch), model.eval()(batch))
     with pytest.raises(ValueError, match=r"gnn\.ckpt: a mesh_gnn of the compression step; init"):
         _model("unloaded").start_from(path)
-    with pytest.raises(ValueError, match=r"gnn\.ckpt: its network's settings are not model"):
-        MeshGraphModule("compression", hidden=8, layers=2, slices=4, heads=2).start_from(path)
+    with pytest.raises(
+        ValueError, match=r"gnn\.ckpt: .*other settings: model\.hidden=16 \(here 8\)"
+    ):
+        MeshGraphModule("compression", hidden=8, layers=2, slices=4, heads=2,
+                        decoder_hidden=16).start_from(path)  # fmt: skip
+    with pytest.raises(ValueError, match=r"model\.compliance_scaling=None \(here True\)"):
+        _model(compliance_scaling=True).start_from(path)  # the same weights, other outputs
+    _model(lr=0.1, train_steps=2).start_from(path)  # the fit's settings may change
     # predictions of a remeshed breast (8x the elements) and of other conditions run
     surrogate = load_surrogate(path, "compression")
     assert surrogate.graph and surrogate.name == "mesh_gnn"
