@@ -45,6 +45,9 @@ mm). The table gives the mean over breasts with its ratio to the native resoluti
 at most 1.25x), and the inverted elements (signed volume <= 0) of the raw predictions over all
 recorded steps. FE time per breast is the simulation's own record (both steps; the native
 cohort's was measured when the cohort was built, possibly on another machine and load).
+With ``--project``, each step's predicted trajectory is also moved onto valid shapes
+(`mammo_net.validity.ValidityProjection`, predict.py's default) and scored again: last-step
+error, inverted element-steps left and the projection's time per breast and step.
 """
 
 from __future__ import annotations
@@ -72,6 +75,7 @@ from fem.contract.trajectory import Trajectory
 from fem.engine.simulation import Simulation
 from mammo_net.metrics import breast_rmse
 from mammo_net.predictor import Surrogate, load_surrogate, predict_breast
+from mammo_net.validity import ValidityProjection
 
 RUNS = Path("results/cv/mesh_gnn")
 NATIVE = "native"
@@ -192,8 +196,15 @@ def simulate_resolutions(
     return failures
 
 
-def evaluate(traj: Trajectory, unloaded: Surrogate, compression: Surrogate) -> dict:
-    """One breast's errors (mm), inverted elements of the raw predictions and times."""
+def evaluate(
+    traj: Trajectory,
+    unloaded: Surrogate,
+    compression: Surrogate,
+    projection: ValidityProjection | None = None,
+) -> dict:
+    """One breast's errors (mm), inverted elements of the raw predictions and times; with
+    ``projection``, also the errors and inverted elements after it and its time (s, per
+    step's trajectory)."""
     thickness = float(traj.metadata["simulation"]["compressed_thickness_mm"])
     start = time.perf_counter()
     shapes = predict_breast(traj, unloaded, compression, [thickness])
@@ -209,6 +220,14 @@ def evaluate(traj: Trajectory, unloaded: Surrogate, compression: Surrogate) -> d
         volume = signed_volume(predicted.astype(np.float64), traj.cells)  # (T, E)
         row[step]["inverted"] = int((volume <= 0).sum())
         row[step]["element_steps"] = int(volume.size)
+        if projection is not None:
+            start = time.perf_counter()
+            valid = projection.project_step(traj, step, predicted)
+            after = breast_rmse(valid.transpose(1, 0, 2), truth.transpose(1, 0, 2))
+            volume = signed_volume(valid.astype(np.float64), traj.cells)
+            after["inverted"] = int((volume <= 0).sum())
+            after["seconds"] = time.perf_counter() - start
+            row[step]["projected"] = after
     return row
 
 
@@ -237,6 +256,15 @@ def summary(rows: list[dict], resolutions: list[str]) -> list[dict]:
             entry[f"{step}_{key}_mm"] = mean
             entry[f"{step}_{key}_ratio"] = mean / native[(step, key)]
         for step in ("compression", "unloaded"):
+            if all("projected" in r[step] for r in mine):
+                after = [r[step]["projected"] for r in mine]
+                entry[f"{step}_projected_last_step_mm"] = float(
+                    np.mean([a["last_step"] for a in after])
+                )
+                entry[f"{step}_projected_inverted"] = sum(a["inverted"] for a in after)
+                entry[f"{step}_projection_s_median"] = statistics.median(
+                    a["seconds"] for a in after
+                )
             entry[f"{step}_inverted"] = sum(r[step]["inverted"] for r in mine)
             entry[f"{step}_inverted_breasts"] = sum(r[step]["inverted"] > 0 for r in mine)
             entry[f"{step}_element_steps"] = sum(r[step]["element_steps"] for r in mine)
@@ -263,6 +291,21 @@ def markdown(table: list[dict]) -> str:
             f"{e['unloaded_inverted']} ({e['compression_inverted_breasts']} / "
             f"{e['unloaded_inverted_breasts']}) |"
         )
+    if all("compression_projected_inverted" in e for e in table):
+        lines += [
+            "",
+            "| resolution | after the validity projection: compression / unloaded, last step"
+            " | inverted element-steps | projection s per breast (median) |",
+            "| --- | --- | --- | --- |",
+        ]
+        for e in table:
+            lines.append(
+                f"| {e['resolution']} | {e['compression_projected_last_step_mm']:.3f} / "
+                f"{e['unloaded_projected_last_step_mm']:.3f} mm | "
+                f"{e['compression_projected_inverted']} / {e['unloaded_projected_inverted']} | "
+                f"{e['compression_projection_s_median']:.2f} / "
+                f"{e['unloaded_projection_s_median']:.2f} |"
+            )
     worst = max(e[f"{s}_{k}_ratio"] for e in table for s, k in METRICS)
     verdict = "met" if worst <= TARGET_RATIO else "missed"
     lines += ["", f"Worst ratio to native: {worst:.2f}x (target <= {TARGET_RATIO}x: {verdict})."]
@@ -290,6 +333,10 @@ def main() -> None:
         help="also mesh and simulate this many training breasts (for data.augment_dir)",
     )  # fmt: skip
     ap.add_argument("--workers", type=int, default=1, help="processes for meshing and FE")
+    ap.add_argument(
+        "--project", action="store_true",
+        help="also score the predictions after the validity projection (predict.py's default)",
+    )  # fmt: skip
     ap.add_argument(
         "--no-evaluate", action="store_true", help="mesh and simulate only; predict nothing"
     )  # fmt: skip
@@ -331,6 +378,7 @@ def main() -> None:
         print(f"failed: {f['breast']} at {f['factor']}x: {f['reason']}")
     if not paired:
         raise SystemExit("no breast finished at every resolution")
+    projection = ValidityProjection() if args.project else None
     unloaded = load_surrogate(args.unloaded, "unloaded")
     compression = load_surrogate(args.compression, "compression")
     rows = []
@@ -338,7 +386,11 @@ def main() -> None:
         for res, folder in folders.items():
             traj = Trajectory.load(folder / f"{name}.npz")
             rows.append(
-                {"breast": name, "resolution": res, **evaluate(traj, unloaded, compression)}
+                {
+                    "breast": name,
+                    "resolution": res,
+                    **evaluate(traj, unloaded, compression, projection),
+                }
             )
     table = summary(rows, list(folders))
     print(markdown(table))

@@ -1,0 +1,59 @@
+"""The resolution benchmark's table (benchmarks/resolution_generalisation.py) on made-up rows:
+ratios to the native resolution, the verdict and the projection's columns."""
+
+import importlib.util
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _benchmark():
+    path = ROOT / "benchmarks" / "resolution_generalisation.py"
+    spec = importlib.util.spec_from_file_location("resolution_generalisation", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _row(breast: str, resolution: str, error: float, projected: bool) -> dict:
+    step = {"all_steps": error / 2, "last_step": error, "inverted": 3, "element_steps": 100}
+    if projected:
+        step["projected"] = {"all_steps": error / 2, "last_step": error + 0.1, "inverted": 0,
+                             "seconds": 0.2}  # fmt: skip
+    return {
+        "breast": breast,
+        "resolution": resolution,
+        "tetrahedra": {"native": 2000, "2x": 4000}[resolution],
+        "fe_s": 1.0,
+        "predict_s": 0.05,
+        "compression": dict(step),
+        "unloaded": dict(step),
+    }
+
+
+@pytest.mark.parametrize("projected", [False, True])
+def test_summary_ratios_verdict_and_projection(projected):
+    bench = _benchmark()
+    rows = [
+        _row("P0000_L", "native", 1.0, projected),
+        _row("P0001_R", "native", 2.0, projected),
+        _row("P0000_L", "2x", 1.2, projected),
+        _row("P0001_R", "2x", 2.7, projected),  # mean 1.95 against 1.5: 1.30x
+    ]
+    table = bench.summary(rows, ["native", "2x"])
+    assert table[0]["compression_last_step_ratio"] == pytest.approx(1.0)
+    assert table[1]["compression_last_step_ratio"] == pytest.approx(1.3)
+    assert table[1]["unloaded_all_steps_mm"] == pytest.approx(0.975)
+    assert table[1]["compression_inverted"] == 6 and table[1]["compression_element_steps"] == 200
+    text = bench.markdown(table)
+    assert "Worst ratio to native: 1.30x (target <= 1.25x: missed)." in text
+    assert ("after the validity projection" in text) is projected
+    if projected:
+        assert table[1]["compression_projected_last_step_mm"] == pytest.approx(2.05)
+        assert table[1]["unloaded_projected_inverted"] == 0
+        assert "| 2x | 2.050 / 2.050 mm | 0 / 0 | 0.20 / 0.20 |" in text
+    rows[3]["compression"]["last_step"] = rows[3]["unloaded"]["last_step"] = 2.0
+    rows[3]["compression"]["all_steps"] = rows[3]["unloaded"]["all_steps"] = 1.0
+    assert "1.07x (target <= 1.25x: met)" in bench.markdown(bench.summary(rows, ["native", "2x"]))
