@@ -31,13 +31,16 @@ COMMITTED_MODELS = sorted(  # results/<cv folder>/<model>/<step>/fold<k>/<model 
     path.relative_to(ROOT / "results")
     for name in RUN_MODELS.values()
     for path in (ROOT / "results").glob(f"cv*/*/*/fold*/{name}")
+) + sorted(  # results/resolution/<run>/<step>/checkpoints/best.ckpt: the fine-tuned graph models
+    path.relative_to(ROOT / "results")
+    for path in (ROOT / "results").glob("resolution/*/*/checkpoints/best.ckpt")
 )
 
 
 @pytest.mark.parametrize("path", COMMITTED_MODELS, ids=str)
 def test_committed_models_predict(path):
-    """Every model file in results/cv (the paper cohort's folds) and results/cv_v2 (the cohort
-    v2's) loads for prediction with this code's inputs: a model
+    """Every model file in results/cv (the paper cohort's folds), results/cv_v2 (the cohort
+    v2's) and results/resolution (fine-tuned on remeshed breasts) loads for prediction with this code's inputs: a model
     trained on this code's inputs but saved without their revisions (the graph model's
     compression folds 0-2 until 2026-12-05), or trained before a redefinition of its inputs
     (the Att-BLSTM's compression folds until 2026-12-06), fails here instead of in the report."""
