@@ -40,6 +40,18 @@ def test_frames_are_orthonormal_and_round_trip():
     assert frames.held.sum() == 2 * face.sum() + (face & np.isclose(p[:, 2], 0)).sum() + 1
 
 
+def test_a_direction_nearly_in_a_coordinate_plane_gets_a_rotation():
+    """A sliding-wall normal 6e-8 off the xy plane (a 2x remeshed cohort breast, P0107_L):
+    one Gram-Schmidt pass let a fourth row through and the frame's determinant failed."""
+    wall = np.array([[0.3446506223815562, -0.9387310309625447, 6.333254155892629e-08]])
+    frames = NodeFrames.build(3, HeldDirections(np.array([1]), wall))
+    R = frames.rotations[1]
+    np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-12)
+    assert np.linalg.det(R) == pytest.approx(1.0)
+    np.testing.assert_allclose(R[:, 0], wall[0], atol=1e-15)  # the held direction first
+    assert frames.held[1].tolist() == [True, False, False] and frames.rotated.tolist() == [1]
+
+
 def test_framed_model_derivatives():
     p, t = block()
     frames, _ = oblique_frames(p)

@@ -73,10 +73,17 @@ class HeldDirections:
 
 
 def _orthonormal_rows(vectors: NDArray) -> NDArray[np.float64]:
-    """An orthonormal basis (k, 3) of the span of ``vectors`` (rows), Gram-Schmidt."""
+    """An orthonormal basis (k <= 3, 3) of the span of ``vectors`` (rows): Gram-Schmidt with
+    each vector orthogonalised twice (one pass leaves rounding errors of about 1e-8 when a
+    vector is close to the span before it, which let a fourth row through: a direction
+    6e-8 off the xy plane, then the coordinate axes), stopping at three rows."""
     basis: list[NDArray] = []
     for v in vectors:
-        w = v - sum((v @ e) * e for e in basis)
+        if len(basis) == 3:
+            break
+        w = np.asarray(v, np.float64)
+        for _ in range(2):
+            w = w - sum((w @ e) * e for e in basis)
         if np.linalg.norm(w) > RANK_TOLERANCE:
             basis.append(w / np.linalg.norm(w))
     return np.array(basis).reshape(-1, 3)
