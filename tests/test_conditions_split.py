@@ -3,14 +3,13 @@ on the simulation conditions (``data.train_conditions``), and the held-out-condi
 benchmark, on tiny synthetic v2-like trajectories."""
 
 import copy
-import importlib.util
 import json
 import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import SIMULATION_METADATA, tiny_trajectory
+from conftest import SIMULATION_METADATA, benchmark_module, tiny_trajectory
 from omegaconf import OmegaConf
 
 from datamodules.graphs import MeshGraphDataModule
@@ -258,11 +257,7 @@ def test_from_run_reads_a_list_of_folders(views, tmp_path):
 
 
 def _benchmark():
-    path = ROOT / "benchmarks" / "conditions_generalisation.py"
-    spec = importlib.util.spec_from_file_location("conditions_generalisation", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return benchmark_module("conditions_generalisation")
 
 
 def test_benchmark_groups_held_out_and_in_range_breasts_by_view(views, tmp_path):

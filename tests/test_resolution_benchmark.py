@@ -1,20 +1,8 @@
 """The resolution benchmark's table (benchmarks/resolution_generalisation.py) on made-up rows:
 ratios to the native resolution, the verdict and the projection's columns."""
 
-import importlib.util
-from pathlib import Path
-
 import pytest
-
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def _benchmark():
-    path = ROOT / "benchmarks" / "resolution_generalisation.py"
-    spec = importlib.util.spec_from_file_location("resolution_generalisation", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+from conftest import benchmark_module
 
 
 def _row(breast: str, resolution: str, error: float, projected: bool) -> dict:
@@ -35,7 +23,7 @@ def _row(breast: str, resolution: str, error: float, projected: bool) -> dict:
 
 @pytest.mark.parametrize("projected", [False, True])
 def test_summary_ratios_verdict_and_projection(projected):
-    bench = _benchmark()
+    bench = benchmark_module("resolution_generalisation")
     rows = [
         _row("P0000_L", "native", 1.0, projected),
         _row("P0001_R", "native", 2.0, projected),
