@@ -15,8 +15,6 @@ from omegaconf import OmegaConf
 from datamodules.graphs import MeshGraphDataModule
 from datamodules.trajectories import TrajectoryDataModule, cache_is_current, folder_labels
 
-ROOT = Path(__file__).resolve().parents[1]
-
 #: Patient p's fat modulus (Pa); bounds [700, 2600] hold patients 0, 6 and 7 out.
 FAT = (550.0, 800.0, 1100.0, 1500.0, 2000.0, 2500.0, 3000.0, 3300.0)
 BOUNDS = {"young_fat": [700, 2600]}
