@@ -101,8 +101,6 @@ class Source:
     name: str
     path: Path
     stem: Path
-    #: from an augmentation folder (training breasts only)
-    augment: bool = False
 
 
 def data_folders(data_dir: DataDir) -> list[Path]:
@@ -348,19 +346,18 @@ class TrajectoryDataModule(L.LightningDataModule):
                 else {name: list(pair) for name, pair in self.bounds.items()},
             }
         )
-        self.data_dirs = [f.absolute() for f in folders]
-        self.augment_dirs = [f.absolute() for f in extra]
-        labels = folder_labels(folders + extra) if len(folders + extra) > 1 else [""]
-        #: per data folder, the suffix of its breasts' names (none for one folder)
-        self.labels = labels[: len(folders)] if len(folders) > 1 else [""]
-        #: per augmentation folder, the same (always one)
-        self.augment_labels = labels[len(folders) :]
-        every = self.data_dirs + self.augment_dirs
+        #: the data folders, then the augmentation folders
+        self.folders = [f.absolute() for f in folders + extra]
+        self.n_data_dirs = len(folders)
+        #: per folder, the suffix of its breasts' names (none for one data folder alone; an
+        #: augmentation folder's always has one)
+        self.labels = folder_labels(folders + extra) if len(self.folders) > 1 else [""]
+        if len(folders) == 1:
+            self.labels[0] = ""
         if not cache_dir:
-            self.caches = [f / "cache" for f in every]
+            self.caches = [f / "cache" for f in self.folders]
         else:
-            root = Path(cache_dir).absolute()
-            self.caches = [root / label for label in self.labels + self.augment_labels]
+            self.caches = [Path(cache_dir).absolute() / label for label in self.labels]
         self.feature_names = STEP_FEATURES[step]
         self.train: list[Breast] = []
         self.val: list[Breast] = []
@@ -410,6 +407,16 @@ class TrajectoryDataModule(L.LightningDataModule):
             raise ValueError(f"{config}: {exc}") from exc
 
     @property
+    def data_dirs(self) -> list[Path]:
+        """The data folders (absolute)."""
+        return self.folders[: self.n_data_dirs]
+
+    @property
+    def augment_dirs(self) -> list[Path]:
+        """The augmentation folders (absolute): training breasts only."""
+        return self.folders[self.n_data_dirs :]
+
+    @property
     def cache_kind(self) -> str:
         """The folder of this module's caches in each cache folder."""
         return self.hparams.step
@@ -427,18 +434,13 @@ class TrajectoryDataModule(L.LightningDataModule):
             A folder has no trajectory; the message names it.
         """
         result = []
-        folders = self.data_dirs + self.augment_dirs
-        labels = self.labels + self.augment_labels
-        for i, (folder, cache, label) in enumerate(zip(folders, self.caches, labels, strict=True)):
+        for folder, cache, label in zip(self.folders, self.caches, self.labels, strict=True):
             files = sorted(folder.glob("P*_[LR].npz"))
             if not files:
                 raise FileNotFoundError(f"{folder}: no simulated trajectories (P*_[LR].npz)")
             result += [
                 Source(
-                    f"{f.stem}@{label}" if label else f.stem,
-                    f,
-                    cache / self.cache_kind / f.stem,
-                    augment=i >= len(self.data_dirs),
+                    f"{f.stem}@{label}" if label else f.stem, f, cache / self.cache_kind / f.stem
                 )
                 for f in files
             ]
@@ -453,12 +455,11 @@ class TrajectoryDataModule(L.LightningDataModule):
             ``name`` names none of the folders (data and augmentation).
         """
         stem, _, label = name.partition("@")
-        folders = self.data_dirs + self.augment_dirs
-        for d, own in zip(folders, self.labels + self.augment_labels, strict=True):
+        for d, own in zip(self.folders, self.labels, strict=True):
             if own == label:
                 return d / f"{stem}.npz"
         raise ValueError(
-            f"breast {name!r}: none of the data folders {[str(d) for d in folders]} "
+            f"breast {name!r}: none of the data folders {[str(d) for d in self.folders]} "
             "(breasts of several folders are named <file stem>@<folder path below their "
             f"common parent>: {self.labels})"
         )
@@ -479,9 +480,9 @@ class TrajectoryDataModule(L.LightningDataModule):
         return result
 
     def setup(self, stage: str | None = None) -> None:
-        augment = {s.name for s in self.sources() if s.augment}
         breasts = self.breasts()
-        own = [b for b in breasts if b.name not in augment]
+        augment = set(self.labels[self.n_data_dirs :])
+        own = [b for b in breasts if b.name.partition("@")[2] not in augment]
         site = {b.patient: b.site for b in own}
         patients = np.array(sorted(site))
         sites = [site[p] for p in patients]

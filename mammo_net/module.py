@@ -204,10 +204,7 @@ class NetworkModule(L.LightningModule):
                     for k in differ
                 )
             )
-        try:
-            self.load_state_dict(trained.state_dict(), strict=True)
-        except RuntimeError as exc:  # cannot happen with equal settings; said if it does
-            raise ValueError(f"{path}: its weights do not fit this network ({exc})") from exc
+        self.load_state_dict(trained.state_dict(), strict=True)  # equal settings: same shapes
 
     def shared_step(self, batch: Any, stage: str) -> torch.Tensor:
         raise NotImplementedError
