@@ -103,9 +103,9 @@ class Source:
     stem: Path
 
 
-def data_folders(data_dir: DataDir) -> list[Path]:
-    """The trajectory folders of ``data.data_dir``: one folder, or a list of distinct folders
-    (`folder_labels` tells their breasts apart).
+def data_folders(data_dir: DataDir, field: str = "data.data_dir") -> list[Path]:
+    """The trajectory folders of ``data.data_dir`` (or of the config field ``field``): one
+    folder, or a list of distinct folders (`folder_labels` tells their breasts apart).
 
     Raises
     ------
@@ -116,17 +116,18 @@ def data_folders(data_dir: DataDir) -> list[Path]:
         return [Path(data_dir)]
     folders = [Path(d) for d in data_dir]
     if not folders:
-        raise ValueError("data.data_dir: an empty list of trajectory folders")
+        raise ValueError(f"{field}: an empty list of trajectory folders")
     if len(folders) > 1:
-        folder_labels(folders)
+        folder_labels(folders, field)
     return folders
 
 
-def folder_labels(folders: Sequence[Path]) -> list[str]:
+def folder_labels(folders: Sequence[Path], field: str = "data.data_dir") -> list[str]:
     """What names the breasts and caches of each of several trajectory folders: its path below
     the folders' common parent, ``/`` written ``-`` (``trajectories`` and ``trajectories_mlo``
     for the views of one cohort v2, ``full-trajectories`` and ``2x-trajectories`` for
-    ``data/cohort/full/trajectories`` and ``data/cohort/2x/trajectories``).
+    ``data/cohort/full/trajectories`` and ``data/cohort/2x/trajectories``). ``field`` names
+    the config field(s) the folders came from in the error.
 
     Raises
     ------
@@ -141,7 +142,7 @@ def folder_labels(folders: Sequence[Path]) -> list[str]:
     )
     if twice or "" in labels:
         raise ValueError(
-            f"data.data_dir: {twice or [str(common)]} given twice or holding another of "
+            f"{field}: {twice or [str(common)]} given twice or holding another of "
             f"{[str(f) for f in folders]}: each folder names its breasts "
             "(<file stem>@<its path below the folders' common parent>)"
         )
@@ -322,7 +323,7 @@ class TrajectoryDataModule(L.LightningDataModule):
                 f"data.fold={fold} selects a k-fold validation fold; the one-fold split has none"
             )
         folders = data_folders(data_dir)
-        extra = [] if augment_dir is None else data_folders(augment_dir)
+        extra = [] if augment_dir is None else data_folders(augment_dir, "data.augment_dir")
         self.bounds = check_bounds(train_conditions)
         # the resolved values, stated, the folders as given (a relative folder stays relative
         # in checkpoints); a subclass's own arguments are not collected
@@ -351,7 +352,11 @@ class TrajectoryDataModule(L.LightningDataModule):
         self.n_data_dirs = len(folders)
         #: per folder, the suffix of its breasts' names (none for one data folder alone; an
         #: augmentation folder's always has one)
-        self.labels = folder_labels(folders + extra) if len(self.folders) > 1 else [""]
+        self.labels = (
+            folder_labels(folders + extra, "data.data_dir and data.augment_dir")
+            if len(self.folders) > 1
+            else [""]
+        )
         if len(folders) == 1:
             self.labels[0] = ""
         if not cache_dir:

@@ -145,6 +145,10 @@ def test_data_folders_refused(views, tmp_path):
         TrajectoryDataModule([str(views[0]), str(views[0] / "sub")])
     with pytest.raises(ValueError, match="empty list"):
         TrajectoryDataModule([])
+    with pytest.raises(ValueError, match=r"^data\.augment_dir: an empty list"):
+        TrajectoryDataModule(str(views[0]), augment_dir=[])
+    with pytest.raises(ValueError, match=r"^data\.data_dir and data\.augment_dir: .* given twice"):
+        TrajectoryDataModule(str(views[0]), augment_dir=[str(views[1]), str(views[0])])
     empty = tmp_path / "empty_view"
     empty.mkdir()
     with pytest.raises(FileNotFoundError, match="empty_view: no simulated trajectories"):
