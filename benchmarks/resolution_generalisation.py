@@ -2,8 +2,9 @@
 run's split (fold 0 of the 10-fold cross-validation by default: 52 breasts) are remeshed from
 their segmentations at ``--factors`` times the cohort's element count (2x and 4x: about 4,500
 and 9,000 tetrahedra instead of 2,250) and simulated there with the cohort's own settings; the
-models trained at the native resolution then predict each breast at every resolution and are
-compared with the FE on the same mesh.
+models (by default the committed graph models of the split's fold, `results/cv/mesh_gnn`;
+a model trained on another split is refused, as its training breasts could be among these)
+then predict each breast at every resolution and are compared with the FE on the same mesh.
 
     python benchmarks/resolution_generalisation.py --limit 2            # a quick check
     nohup python benchmarks/resolution_generalisation.py --factors 2 4 \
@@ -60,6 +61,7 @@ from concurrent.futures import as_completed
 from pathlib import Path
 
 import numpy as np
+import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
@@ -87,15 +89,34 @@ METRICS = (
     ("unloaded", "all_steps"),
     ("unloaded", "last_step"),
 )
+#: The data settings that decide which breasts a model was trained on.
+SPLIT_SETTINGS = ("split", "fold", "n_folds", "val_fraction", "seed")
 
 
-def split_names(run: Path) -> tuple[list[str], list[str]]:
+def split_names(run: Path) -> tuple[list[str], list[str], dict]:
     """The training and validation breasts of ``run``'s split (the graph data module it was
-    trained with, its own data folder only; its caches are reused when current)."""
+    trained with, its own data folder only; its caches are reused when current) and the
+    split's settings (`SPLIT_SETTINGS`)."""
     dm = MeshGraphDataModule.from_run(run)
     dm.prepare_data()
     dm.setup()
-    return [b.name for b in dm.train if "@" not in b.name], [b.name for b in dm.val]
+    split = {k: dm.hparams[k] for k in SPLIT_SETTINGS}
+    return [b.name for b in dm.train if "@" not in b.name], [b.name for b in dm.val], split
+
+
+def model_path(given: Path | None, step: str, split: dict) -> Path:
+    """The model of ``step`` to evaluate: ``given``, or by default the committed graph model
+    of the split's fold; refused when it was trained on another split than ``split`` (its
+    training breasts could be among the evaluated ones)."""
+    path = given or RUNS / step / f"fold{split['fold']}" / "checkpoints" / "best.ckpt"
+    data = torch.load(path, map_location="cpu", weights_only=True)
+    trained = {k: (data.get("datamodule_hyper_parameters") or {}).get(k) for k in SPLIT_SETTINGS}
+    if trained != split:
+        raise SystemExit(
+            f"{path}: trained on the split {trained}, but --split-run's validation breasts are "
+            f"of {split}: some of them may be its training breasts"
+        )
+    return path
 
 
 def cohort_settings(cohort: Path, factor: int) -> DictConfig:
@@ -316,10 +337,14 @@ def main() -> None:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    ap.add_argument("--unloaded", type=Path, default=RUNS / "unloaded/fold0/checkpoints/best.ckpt")
     ap.add_argument(
-        "--compression", type=Path, default=RUNS / "compression/fold0/checkpoints/best.ckpt"
-    )
+        "--unloaded", type=Path, default=None,
+        help="the unloaded-state model (default: the split's fold of results/cv/mesh_gnn)",
+    )  # fmt: skip
+    ap.add_argument(
+        "--compression", type=Path, default=None,
+        help="the compression model (default: the split's fold of results/cv/mesh_gnn)",
+    )  # fmt: skip
     ap.add_argument(
         "--split-run", type=Path, default=RUNS / "compression/fold0",
         help="train.py run folder whose validation breasts are used",
@@ -350,7 +375,10 @@ def main() -> None:
         raise SystemExit(f"--factors must be integers >= 2, got {args.factors}")
     if args.train_breasts < 0:
         raise SystemExit(f"--train-breasts must be >= 0, got {args.train_breasts}")
-    train, names = split_names(args.split_run)
+    train, names, split = split_names(args.split_run)
+    if not args.no_evaluate:
+        args.unloaded = model_path(args.unloaded, "unloaded", split)
+        args.compression = model_path(args.compression, "compression", split)
     if args.train_breasts > len(train):
         raise SystemExit(f"--train-breasts: the split has {len(train)} training breasts")
     names = names[: args.limit]

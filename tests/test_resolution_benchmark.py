@@ -45,3 +45,17 @@ def test_summary_ratios_verdict_and_projection(projected):
     rows[3]["compression"]["last_step"] = rows[3]["unloaded"]["last_step"] = 2.0
     rows[3]["compression"]["all_steps"] = rows[3]["unloaded"]["all_steps"] = 1.0
     assert "1.07x (target <= 1.25x: met)" in bench.markdown(bench.summary(rows, ["native", "2x"]))
+
+
+def test_models_default_to_the_split_fold_and_another_split_is_refused():
+    """Evaluating fold 1's validation breasts with fold 0's model would score breasts it was
+    trained on: the default model is the split's own fold, and another split's is refused."""
+    bench = benchmark_module("resolution_generalisation")
+    split = {"split": "k_fold", "fold": 1, "n_folds": 10, "val_fraction": 0.1, "seed": 0}
+    path = bench.model_path(None, "compression", split)
+    assert path == bench.RUNS / "compression" / "fold1" / "checkpoints" / "best.ckpt"
+    fold0 = bench.RUNS / "unloaded" / "fold0" / "checkpoints" / "best.ckpt"
+    with pytest.raises(
+        SystemExit, match=r"fold0/checkpoints/best\.ckpt: trained on the split .*'fold': 0"
+    ):
+        bench.model_path(fold0, "unloaded", split)
