@@ -337,14 +337,11 @@ def main() -> None:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    ap.add_argument(
-        "--unloaded", type=Path, default=None,
-        help="the unloaded-state model (default: the split's fold of results/cv/mesh_gnn)",
-    )  # fmt: skip
-    ap.add_argument(
-        "--compression", type=Path, default=None,
-        help="the compression model (default: the split's fold of results/cv/mesh_gnn)",
-    )  # fmt: skip
+    for step in ("unloaded", "compression"):
+        ap.add_argument(
+            f"--{step}", type=Path, default=None,
+            help=f"the {step} model (default: the split's fold of results/cv/mesh_gnn)",
+        )  # fmt: skip
     ap.add_argument(
         "--split-run", type=Path, default=RUNS / "compression/fold0",
         help="train.py run folder whose validation breasts are used",
