@@ -108,6 +108,8 @@ def model_path(given: Path | None, step: str, split: dict) -> Path:
     """The model of ``step`` to evaluate: ``given``, or by default the committed graph model
     of the split's fold; refused when it was trained on another split than ``split`` (its
     training breasts could be among the evaluated ones)."""
+    if given is None and split["fold"] is None:
+        raise SystemExit(f"--{step}: the committed models are k-fold; name one for this split")
     path = given or RUNS / step / f"fold{split['fold']}" / "checkpoints" / "best.ckpt"
     data = torch.load(path, map_location="cpu", weights_only=True)
     trained = {k: (data.get("datamodule_hyper_parameters") or {}).get(k) for k in SPLIT_SETTINGS}

@@ -59,3 +59,6 @@ def test_models_default_to_the_split_fold_and_another_split_is_refused():
         SystemExit, match=r"fold0/checkpoints/best\.ckpt: trained on the split .*'fold': 0"
     ):
         bench.model_path(fold0, "unloaded", split)
+    one_fold = {**split, "split": "one_fold", "fold": None}
+    with pytest.raises(SystemExit, match=r"--compression: the committed models are k-fold"):
+        bench.model_path(None, "compression", one_fold)
