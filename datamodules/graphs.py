@@ -21,7 +21,7 @@ changes.
 from __future__ import annotations
 
 import json
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from types import MappingProxyType
@@ -142,7 +142,12 @@ class Conditions:
             The metadata lack the simulation's settings; the message names the source and
             the field.
         """
-        raw = recorded_conditions(metadata)
+        return cls.of_recorded(recorded_conditions(metadata), source)
+
+    @classmethod
+    def of_recorded(cls, raw: Mapping | None, source: str = "trajectory") -> Conditions:
+        """The conditions of `datamodules.trajectories.recorded_conditions`'s plain values
+        (None: not recorded), as `of_metadata` (its errors)."""
         if raw is None:
             raise ValueError(
                 f"{source}: metadata field 'simulation' must hold materials (young of "
@@ -177,6 +182,28 @@ class Conditions:
 #: The paper cohort's conditions (`conf/simulation/default.yaml`): the models of the paper know
 #: only these.
 PAPER_CONDITIONS = Conditions(REFERENCE_YOUNG, 0.25, "cc", 45.0)
+
+
+def stiffness_bounds(breasts: Sequence[Breast]) -> torch.Tensor:
+    """The range (2, C) of the breasts' conditions (`CONDITION_FEATURES`) over their
+    stiffness inputs (the ``log_young_*`` columns): lowest and highest; infinite for the
+    other conditions (friction, view, angle), which are not bounded.
+
+    Raises
+    ------
+    ValueError
+        No breasts, or one whose trajectory does not record its conditions.
+    """
+    if not breasts:
+        raise ValueError("stiffness_bounds: no breasts")
+    vectors = np.stack(
+        [Conditions.of_recorded(b.conditions(), str(b.stem)).vector() for b in breasts]
+    )  # (B, C)
+    bounds = torch.tensor([-np.inf, np.inf])[:, None].repeat(1, len(CONDITION_FEATURES))
+    stiff = [i for i, name in enumerate(CONDITION_FEATURES) if name.startswith("log_young_")]
+    bounds[0, stiff] = torch.from_numpy(vectors[:, stiff].min(axis=0))
+    bounds[1, stiff] = torch.from_numpy(vectors[:, stiff].max(axis=0))
+    return bounds  # (2, C)
 
 
 def node_inputs(

@@ -194,6 +194,34 @@ def compliance_gain(
     return torch.exp(-log_modulus)[graph][:, None]  # (N, 1)
 
 
+def scaled_into_range(
+    conditions: torch.Tensor, bounds: torch.Tensor, columns: Sequence[int]
+) -> torch.Tensor:
+    """The conditions (B, C) a network trained inside ``bounds`` (2, C: low, high; infinite
+    where unbounded) is shown: the log-moduli of ``columns`` (the tissues of the compliance
+    gain) shifted by one common amount, the least that brings them all inside their bounds
+    (half-way between the two closest shifts when none does), then every column clamped to
+    its bounds.
+
+    A common shift is a uniform scaling of those moduli, under which a linear-elastic body's
+    displacement scales exactly as the inverse of the scale, as `compliance_gain` does: so a
+    breast softer or stiffer than every training breast is predicted as the nearest trained
+    breast of the same stiffness ratios, and the gain, taken on the breast's own moduli,
+    carries the rest, instead of the network extrapolating in its inputs. Conditions inside
+    the bounds are returned unchanged.
+    """
+    x = conditions[:, list(columns)]  # (B, K)
+    low, high = bounds[0, list(columns)], bounds[1, list(columns)]  # (K,)
+    least = (low - x).max(dim=1).values  # (B,) the smallest shift that meets every low bound
+    most = (high - x).min(dim=1).values  # (B,) the largest that meets every high bound
+    shift = torch.where(
+        least <= most, least.clamp_min(0.0) + most.clamp_max(0.0), (least + most) / 2
+    )  # (B,) zero when already inside
+    shifted = conditions.clone()
+    shifted[:, list(columns)] = x + shift[:, None]
+    return torch.maximum(torch.minimum(shifted, bounds[1]), bounds[0])  # (B, C)
+
+
 class MeshGraphNet(nn.Module):
     """Encode-process-decode over a breast's tetrahedral mesh (MeshGraphNets, Pfaff et al.
     2021) with a global path per block (`SliceAttention`), decoding every node's whole step
@@ -227,6 +255,11 @@ class MeshGraphNet(nn.Module):
         Pairs (tissue indicator column of ``nodes``, log-modulus column of ``conditions``):
         the decoded displacement is multiplied by each breast's `compliance_gain` over these
         tissues; empty: not scaled.
+    bounded : bool
+        Show the network the conditions `scaled_into_range` of the buffer
+        ``condition_bounds`` (2, C), infinite until set (the training breasts' range, by
+        `mammo_net.module.MeshGraphModule.adapt`); needs ``compliance``, which then takes the
+        breast's own conditions.
     """
 
     def __init__(
@@ -241,9 +274,16 @@ class MeshGraphNet(nn.Module):
         heads: int,
         decoder_hidden: int,
         compliance: Sequence[tuple[int, int]] = (),
+        bounded: bool = False,
     ) -> None:
         super().__init__()
         self.compliance = tuple(compliance)
+        if bounded and not self.compliance:
+            raise ValueError("bounded conditions need the compliance gain (compliance=...)")
+        self.bounded = bounded
+        if bounded:
+            unbounded = torch.tensor([-torch.inf, torch.inf])[:, None].expand(2, n_condition)
+            self.register_buffer("condition_bounds", unbounded.clone())  # (2, C)
         self.node_encoder = mlp(n_node + n_condition + n_step, hidden, hidden)
         self.edge_encoder = mlp(4, hidden, hidden)
         self.blocks = nn.ModuleList(MessagePassing(hidden) for _ in range(layers))
@@ -259,6 +299,11 @@ class MeshGraphNet(nn.Module):
             nn.SiLU(),
             nn.Linear(decoder_hidden, 3),
         )
+
+    @property
+    def gain_columns(self) -> list[int]:
+        """The condition columns of the compliance gain's tissues (their log-moduli)."""
+        return [column for _, column in self.compliance]
 
     def forward(
         self,
@@ -285,7 +330,10 @@ class MeshGraphNet(nn.Module):
         n_graphs = steps.shape[0]
         relative = x[edges[1]] - x[edges[0]]  # (E, 3)
         e = self.edge_encoder(torch.cat([relative, relative.norm(dim=1, keepdim=True)], 1))
-        context = torch.cat([conditions, steps[:, -1]], dim=1)[graph]  # (N, C + Fs)
+        seen = conditions
+        if self.bounded:
+            seen = scaled_into_range(conditions, self.condition_bounds, self.gain_columns)
+        context = torch.cat([seen, steps[:, -1]], dim=1)[graph]  # (N, C + Fs)
         h = self.node_encoder(torch.cat([nodes, context], dim=1))  # (N, H)
         degree = (
             torch.zeros_like(x[:, :1])
@@ -299,7 +347,7 @@ class MeshGraphNet(nn.Module):
         if decoded is not None:
             steps, node_steps = steps[:, decoded], node_steps[decoded]  # T' steps
         z = self.step_encoder(
-            torch.cat([steps, conditions[:, None].expand(-1, steps.shape[1], -1)], dim=-1)
+            torch.cat([steps, seen[:, None].expand(-1, steps.shape[1], -1)], dim=-1)
         )  # (B, T, D)
         # (T, 1, D) broadcast for one breast (a prediction), else each node's breast's
         z = z.transpose(0, 1) if n_graphs == 1 else z.transpose(0, 1)[:, graph]

@@ -43,6 +43,7 @@ from datamodules.graphs import (
     STEP_INPUTS,
     MeshGraphDataModule,
     graph_inputs,
+    stiffness_bounds,
 )
 from fem.contract.trajectory import reading_file
 from mammo_net.inference import graph_predictor, network_predictor
@@ -414,6 +415,15 @@ class MeshGraphModule(NetworkModule):
         as a body load's displacement does. ``None``: on for the unloaded state (gravity),
         off for the compression (driven by the plates' travel). With the paper's materials
         the gain is 1. Checkpoints written before the setting existed load without it.
+    stiffness_range : bool, optional
+        Record the training breasts' range of every tissue's modulus (`adapt`,
+        `datamodules.graphs.stiffness_bounds`; the buffer ``net.condition_bounds``) and show
+        the network a breast outside it scaled uniformly into it
+        (`mammo_net.models.scaled_into_range`): the compliance gain, on the breast's own
+        moduli, then extrapolates as a linear-elastic body does, not the network. Needs
+        ``compliance_scaling``. ``None``: with it. Stored resolved; checkpoints written
+        before the setting existed load without it (`mammo_net.stiffness_range` records the
+        range in one).
     lr, lr_schedule
         As `SurrogateModule`'s.
     """
@@ -431,6 +441,7 @@ class MeshGraphModule(NetworkModule):
         train_steps: int | None = 16,
         knots: int | None = 20,
         compliance_scaling: bool | None = None,
+        stiffness_range: bool | None = None,
         lr: float = 0.001,
         lr_schedule: str = "cosine",
     ) -> None:
@@ -441,6 +452,14 @@ class MeshGraphModule(NetworkModule):
         if knots is not None and knots < 1:
             raise ValueError(f"model.knots must be at least 1 (or null), got {knots}")
         self.save_hyperparameters()
+        if stiffness_range is None:
+            self.hparams.stiffness_range = self.scales_compliance
+        elif stiffness_range and not self.scales_compliance:
+            raise ValueError(
+                "model.stiffness_range=true needs the compliance gain that extrapolates "
+                f"beyond the range: model.compliance_scaling=true (the {step} step's "
+                "default is off)"
+            )
         self.net = MeshGraphNet(
             len(NODE_FEATURES),
             len(STEP_INPUTS[step]),
@@ -452,6 +471,7 @@ class MeshGraphModule(NetworkModule):
             heads,
             decoder_hidden,
             COMPLIANCE_COLUMNS if self.scales_compliance else (),
+            bounded=self.hparams.stiffness_range,
         )
 
     @property
@@ -462,11 +482,13 @@ class MeshGraphModule(NetworkModule):
 
     @classmethod
     def upgrade_hparams(cls, hparams: dict, checkpoint: dict, path: str | Path) -> dict:
-        """Checkpoints written before `compliance_scaling` existed were trained without it."""
-        return {"compliance_scaling": False, **hparams}
+        """Checkpoints written before `compliance_scaling` or `stiffness_range` existed were
+        trained without them."""
+        return {"compliance_scaling": False, "stiffness_range": False, **hparams}
 
     def adapt(self, dm: L.LightningDataModule) -> None:
-        """Record the data's schema (graph inputs of the model's step, refused otherwise)."""
+        """Record the data's schema (graph inputs of the model's step, refused otherwise)
+        and, with `stiffness_range`, the training breasts' range of the moduli."""
         if not isinstance(dm, MeshGraphDataModule):
             raise ValueError(
                 "model=mesh_gnn trains on whole-breast graphs: set data=graphs "
@@ -476,6 +498,8 @@ class MeshGraphModule(NetworkModule):
         self.check_data_step(schema.step)
         schema.check(self.hparams.step, "data", graph_inputs(self.hparams.step))
         self.schema = schema
+        if self.net.bounded:
+            self.net.condition_bounds.copy_(stiffness_bounds(dm.train))
 
     @property
     def takes_graphs(self) -> bool:

@@ -347,3 +347,54 @@ def test_benchmark_groups_held_out_and_in_range_breasts_by_view(views, tmp_path)
         bench.evaluate([str(tmp_path / "runs" / "fold0")], "xgboost", None, out)
     with pytest.raises(SystemExit, match=r"--bounds: .*young_bone"):
         bench.main([str(tmp_path / "runs" / "fold0"), "--bounds", '{"young_bone": [1, 2]}'])
+
+
+def test_stiffness_range_is_recorded_in_a_checkpoint_trained_without_it(views, tmp_path):
+    """`mammo_net.stiffness_range` on a graph model of the unloaded state trained before the
+    setting: the checkpoint then loads with the range of its training breasts' moduli (fat
+    800-2500 Pa of the bounds' patients in fold 1's training split), the weights unchanged
+    and the stale predictions removed; a second call and a model without the gain refuse."""
+    import torch
+
+    from mammo_net.module import MeshGraphModule, NetworkModule
+    from mammo_net.stiffness_range import record_stiffness_range
+
+    run = _run_folder(
+        tmp_path / "run",
+        {"cohort": views[0].parent, "data_dir": [str(f) for f in views], "fold": 1,
+         "step": "unloaded", "train_conditions": BOUNDS},
+    )  # fmt: skip
+    old = MeshGraphModule("unloaded", hidden=8, layers=1, slices=2, heads=2, decoder_hidden=8,
+                          stiffness_range=False)  # fmt: skip
+    hparams = {k: v for k, v in old.hparams.items() if k != "stiffness_range"}
+    (run / "checkpoints").mkdir()
+    checkpoint = {"network": "mesh_gnn", "hyper_parameters": hparams}
+    torch.save({**checkpoint, "state_dict": old.state_dict()}, run / "checkpoints" / "best.ckpt")
+    (run / "predictions").mkdir()
+    (run / "predictions" / "mesh_gnn.npz").write_bytes(b"stale")
+    (run / "predictions" / "mesh_gnn.json").write_text("{}")
+    assert not NetworkModule.from_checkpoint(run / "checkpoints" / "best.ckpt").net.bounded
+
+    bounds = record_stiffness_range(run)
+    model = NetworkModule.from_checkpoint(run / "checkpoints" / "best.ckpt")
+    assert model.hparams.stiffness_range and model.net.bounded
+    torch.testing.assert_close(model.net.condition_bounds, bounds)
+    dm = MeshGraphDataModule.from_run(run)
+    dm.prepare_data()
+    dm.setup()
+    fat = sorted({b.conditions()["young_fat"] for b in dm.train})
+    assert 550.0 not in fat and 3000.0 not in fat  # the bounds hold them out
+    np.testing.assert_allclose(bounds[:, 0], np.log(np.array(fat)[[0, -1]] / 1100.0), rtol=1e-6)
+    assert bounds[0, 4:].eq(-np.inf).all() and bounds[1, 4:].eq(np.inf).all()  # not moduli
+    for name, weights in old.state_dict().items():
+        torch.testing.assert_close(model.state_dict()[name], weights)
+    assert not (run / "predictions" / "mesh_gnn.npz").exists()
+    assert (run / "predictions" / "mesh_gnn.json").exists()
+    with pytest.raises(ValueError, match=r"best\.ckpt: records its stiffness range already"):
+        record_stiffness_range(run)
+    plain = MeshGraphModule("unloaded", hidden=8, layers=1, slices=2, heads=2, decoder_hidden=8,
+                            compliance_scaling=False)  # fmt: skip
+    torch.save({**checkpoint, "hyper_parameters": dict(plain.hparams),
+                "state_dict": plain.state_dict()}, run / "checkpoints" / "best.ckpt")  # fmt: skip
+    with pytest.raises(ValueError, match=r"best\.ckpt: not a graph model with the compliance"):
+        record_stiffness_range(run)

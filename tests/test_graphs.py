@@ -21,7 +21,12 @@ from datamodules.graphs import (
 from fem.breasts.mesh import refine
 from fem.contract.quality import mesh_edges
 from fem.contract.trajectory import Trajectory
-from mammo_net.models import compliance_gain, interpolate_steps, step_knots
+from mammo_net.models import (
+    compliance_gain,
+    interpolate_steps,
+    scaled_into_range,
+    step_knots,
+)
 from mammo_net.module import MeshGraphModule, NetworkModule, SurrogateModule
 from mammo_net.predictor import load_surrogate, predict_breast
 from tests.conftest import SIMULATION_METADATA, tiny_trajectory
@@ -214,7 +219,7 @@ def test_compliance_scaling_multiplies_the_decoded_displacement(tmp_path):
     and at the paper's materials not at all. On by default for the unloaded state only, and
     off for checkpoints written before the setting existed."""
     plain = _model("unloaded", compliance_scaling=False).eval()
-    scaled = _model("unloaded").eval()
+    scaled = _model("unloaded", stiffness_range=False).eval()
     assert scaled.scales_compliance and not _model("compression").scales_compliance
     scaled.load_state_dict(plain.state_dict())
     sample, _ = graph_sample(_traj("L"), "unloaded")
@@ -229,11 +234,64 @@ def test_compliance_scaling_multiplies_the_decoded_displacement(tmp_path):
         assert (gain > 1).all()
         torch.testing.assert_close(scaled(batch) - x, (plain(batch) - x) * gain)
     hparams = dict(scaled.hparams)
-    del hparams["compliance_scaling"]
+    del hparams["compliance_scaling"], hparams["stiffness_range"]
     path = tmp_path / "before.ckpt"
     checkpoint = {"network": "mesh_gnn", "hyper_parameters": hparams}
     torch.save({**checkpoint, "state_dict": scaled.state_dict()}, path)
     assert not NetworkModule.from_checkpoint(path).scales_compliance
+
+
+def test_scaled_into_range_shifts_the_moduli_together_then_clamps():
+    """Columns 0-1 (fat, gland) in [0, 1] each, column 2 (skin) in [0, 1], column 3 not
+    bounded: inside, unchanged; uniformly too soft or too stiff, shifted by one amount (the
+    ratio kept); a ratio outside every shift, half-way, then clamped."""
+    inf = float("inf")
+    bounds = torch.tensor([[0.0, 0.0, 0.0, -inf], [1.0, 1.0, 1.0, inf]])
+    conditions = torch.tensor(
+        [
+            [0.2, 0.9, 0.5, 7.0],  # inside
+            [-0.5, 0.1, 2.0, -7.0],  # fat too soft: both up by 0.5; skin clamped
+            [1.4, 1.2, -1.0, 0.0],  # both too stiff: both down by 0.4
+            [-1.0, 2.0, 0.5, 0.0],  # gland / fat too high for any shift: half-way, clamped
+        ]
+    )
+    seen = scaled_into_range(conditions, bounds, [0, 1])
+    expected = torch.tensor(
+        [
+            [0.2, 0.9, 0.5, 7.0],
+            [0.0, 0.6, 1.0, -7.0],
+            [1.0, 0.8, 0.0, 0.0],
+            [0.0, 1.0, 0.5, 0.0],
+        ]
+    )
+    torch.testing.assert_close(seen, expected)
+
+
+def test_stiffness_range_extrapolates_by_the_compliance_gain(trajectory_folder):
+    """A breast uniformly twice as soft as the softest training breast moves exactly twice as
+    far as that one (the network sees the range's edge; the gain doubles), where the same
+    weights without the range extrapolate in their inputs; the range is recorded from the
+    training breasts, and needs the gain."""
+    bounded = _model("unloaded").eval()
+    free = _model("unloaded", stiffness_range=False).eval()
+    free.load_state_dict({k: v for k, v in bounded.state_dict().items() if "bounds" not in k})
+    assert bounded.hparams.stiffness_range and not _model().hparams.stiffness_range
+    dm = MeshGraphDataModule(str(trajectory_folder), "unloaded", batch_size=4)
+    dm.prepare_data()
+    dm.setup()
+    bounded.adapt(dm)  # every tiny breast has the paper's materials: a one-point range
+    torch.testing.assert_close(bounded.net.condition_bounds[:, :4], torch.zeros(2, 4))
+    sample, _ = graph_sample(_traj("L"), "unloaded")
+    batch = batch_graphs([sample])
+    x = batch["nodes"][:, :3]
+    with torch.no_grad():
+        edge = bounded(batch) - x
+        torch.testing.assert_close(edge, free(batch) - x)  # inside the range: unchanged
+        batch["conditions"][:, :2] = float(np.log(0.5))  # fat and gland at half the moduli
+        torch.testing.assert_close(bounded(batch) - x, 2 * edge)
+        assert not torch.allclose(free(batch) - x, 2 * edge, atol=1e-4)
+    with pytest.raises(ValueError, match=r"stiffness_range=true needs .*compliance_scaling"):
+        _model("compression", stiffness_range=True)
 
 
 def test_training_decodes_a_sample_of_the_steps_with_the_last():
