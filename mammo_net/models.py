@@ -210,15 +210,16 @@ def scaled_into_range(
     carries the rest, instead of the network extrapolating in its inputs. Conditions inside
     the bounds are returned unchanged.
     """
-    x = conditions[:, list(columns)]  # (B, K)
-    low, high = bounds[0, list(columns)], bounds[1, list(columns)]  # (K,)
+    columns = list(columns)
+    x = conditions[:, columns]  # (B, K)
+    low, high = bounds[0, columns], bounds[1, columns]  # (K,)
     least = (low - x).max(dim=1).values  # (B,) the smallest shift that meets every low bound
     most = (high - x).min(dim=1).values  # (B,) the largest that meets every high bound
     shift = torch.where(
         least <= most, least.clamp_min(0.0) + most.clamp_max(0.0), (least + most) / 2
     )  # (B,) zero when already inside
     shifted = conditions.clone()
-    shifted[:, list(columns)] = x + shift[:, None]
+    shifted[:, columns] = x + shift[:, None]
     return torch.maximum(torch.minimum(shifted, bounds[1]), bounds[0])  # (B, C)
 
 

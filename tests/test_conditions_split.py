@@ -9,11 +9,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from conftest import SIMULATION_METADATA, benchmark_module, tiny_trajectory
 from omegaconf import OmegaConf
 
 from datamodules.graphs import MeshGraphDataModule
 from datamodules.trajectories import TrajectoryDataModule, cache_is_current, folder_labels
+from mammo_net.module import MeshGraphModule, NetworkModule
+from mammo_net.stiffness_range import record_stiffness_range
 
 #: Patient p's fat modulus (Pa); bounds [700, 2600] hold patients 0, 6 and 7 out.
 FAT = (550.0, 800.0, 1100.0, 1500.0, 2000.0, 2500.0, 3000.0, 3300.0)
@@ -354,11 +357,6 @@ def test_stiffness_range_is_recorded_in_a_checkpoint_trained_without_it(views, t
     setting: the checkpoint then loads with the range of its training breasts' moduli (fat
     800-2500 Pa of the bounds' patients in fold 1's training split), the weights unchanged
     and the stale predictions removed; a second call and a model without the gain refuse."""
-    import torch
-
-    from mammo_net.module import MeshGraphModule, NetworkModule
-    from mammo_net.stiffness_range import record_stiffness_range
-
     run = _run_folder(
         tmp_path / "run",
         {"cohort": views[0].parent, "data_dir": [str(f) for f in views], "fold": 1,
