@@ -55,6 +55,7 @@ STEPS = {"unloaded": unloaded_features, "compression": compression_features}
 RUN_SETTINGS: dict[str, tuple[type, ...]] = {
     "data_dir": (str, list),
     "augment_dir": (str, list, type(None)),
+    "augment_limit": (int, type(None)),
     "step": (str,),
     "split": (str, type(None)),
     "fold": (int, type(None)),
@@ -63,6 +64,20 @@ RUN_SETTINGS: dict[str, tuple[type, ...]] = {
     "seed": (int,),
     "train_conditions": (dict, type(None)),
 }
+
+
+def limited_augmentation(
+    breasts: list[Breast], labels: set[str], limit: int, seed: int
+) -> list[Breast]:
+    """``breasts`` with at most ``limit`` of each augmentation folder (its ``labels``), drawn
+    with ``seed``; the data folders' breasts and the order are kept."""
+    keep = {b.name for b in breasts if b.name.partition("@")[2] not in labels}
+    rng = np.random.default_rng(seed)
+    for label in sorted(labels):
+        names = sorted(b.name for b in breasts if b.name.partition("@")[2] == label)
+        keep.update(names if len(names) <= limit else rng.choice(names, limit, replace=False))
+    return [b for b in breasts if b.name in keep]
+
 
 #: A trajectory folder given as data: one path, or several.
 DataDir = str | os.PathLike | Sequence[str | os.PathLike]
@@ -283,6 +298,10 @@ class TrajectoryDataModule(L.LightningDataModule):
         training patients join the training set, named ``<file stem>@<label>`` (labels over
         ``data_dir`` and these folders together); those of validation patients are left out.
         The split is drawn over ``data_dir``'s patients alone.
+    augment_limit : int, optional
+        At most this many training breasts from each augmentation folder, drawn with ``seed``
+        among its breasts of training patients: a fixed share of remeshed breasts however
+        many a folder holds. Default: all of them.
     """
 
     #: A breast's cache is complete once its file of this suffix exists (written last).
@@ -304,6 +323,7 @@ class TrajectoryDataModule(L.LightningDataModule):
         cache_dir: str | None = None,
         train_conditions: Mapping[str, Sequence[float]] | None = None,
         augment_dir: DataDir | None = None,
+        augment_limit: int | None = None,
     ) -> None:
         super().__init__()
         if step not in STEPS:
@@ -322,6 +342,11 @@ class TrajectoryDataModule(L.LightningDataModule):
             raise ValueError(
                 f"data.fold={fold} selects a k-fold validation fold; the one-fold split has none"
             )
+        if augment_limit is not None and (isinstance(augment_limit, bool) or augment_limit < 1):
+            raise ValueError(
+                f"data.augment_limit must be a positive number of breasts or null, "
+                f"got {augment_limit!r}"
+            )
         folders = data_folders(data_dir)
         extra = [] if augment_dir is None else data_folders(augment_dir, "data.augment_dir")
         self.bounds = check_bounds(train_conditions)
@@ -333,6 +358,7 @@ class TrajectoryDataModule(L.LightningDataModule):
                 if isinstance(data_dir, str | os.PathLike)
                 else [os.fspath(d) for d in data_dir],
                 "augment_dir": None if augment_dir is None else [os.fspath(d) for d in extra],
+                "augment_limit": augment_limit,
                 "step": step,
                 "split": split,
                 "fold": fold,
@@ -513,6 +539,8 @@ class TrajectoryDataModule(L.LightningDataModule):
                     f"data.train_conditions={hp.train_conditions}: no training breast of "
                     f"{folders} lies within the bounds ({hp.split}, fold {hp.fold})"
                 )
+        if hp.augment_limit is not None:
+            self.train = limited_augmentation(self.train, augment, hp.augment_limit, hp.seed)
 
     def conditions(self, breast: Breast) -> dict[str, float | str]:
         """A breast's recorded simulation conditions (`recorded_conditions`).

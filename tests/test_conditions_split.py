@@ -136,6 +136,18 @@ def test_augmentation_folders_add_training_breasts_only(views, tmp_path, cls):
          "augment_dir": [str(finer)]},
     )  # fmt: skip
     assert TrajectoryDataModule.from_run(run).augment_dirs == [finer.absolute()]
+    # a fixed share: at most augment_limit of the folder's training breasts, the same draw twice
+    limited = [
+        sorted(
+            b.name
+            for b in _setup(cls, views[:1], augment_dir=[str(finer)], augment_limit=2).train
+            if "@" in b.name
+        )
+        for _ in range(2)
+    ]
+    assert limited[0] == limited[1] and len(limited[0]) == 2 and set(limited[0]) < set(added)
+    with pytest.raises(ValueError, match=r"data\.augment_limit must be a positive number"):
+        cls(str(views[0]), augment_dir=[str(finer)], augment_limit=0)
     bad = _run_folder(tmp_path / "bad", {"cohort": tmp_path, "data_dir": "x", "augment_dir": 3})
     with pytest.raises(ValueError, match=r"field 'data\.augment_dir' must be str or list of str"):
         TrajectoryDataModule.from_run(bad)
