@@ -15,6 +15,8 @@ then predict each breast at every resolution and are compared with the FE on the
     python benchmarks/resolution_generalisation.py \
         --unloaded outputs/.../unloaded/checkpoints/best.ckpt \
         --compression outputs/.../compression/checkpoints/best.ckpt   # another model
+    python benchmarks/resolution_generalisation.py --pool results/resolution/fold[0-9]_finetuned_multires.json \
+        --out results/resolution/pooled_finetuned.json     # several folds' breasts, one table
 
 Breasts, meshes and FE: the cohort's generator, mesher and simulation are built from
 ``<cohort>/cohort_config.json`` (the settings the cohort was made with), the mesher with
@@ -49,6 +51,11 @@ cohort's was measured when the cohort was built, possibly on another machine and
 With ``--project``, each step's predicted trajectory is also moved onto valid shapes
 (`mammo_net.validity.ValidityProjection`, predict.py's default) and scored again: last-step
 error, inverted element-steps left and the projection's time per breast and step.
+
+``--pool`` reads the per-breast rows of earlier runs' ``--out`` files (say, one per fold, each
+scored by its own fold's models) and gives one table over all their breasts at the
+``--factors`` resolutions, the ratios taken to the pooled native mean; it meshes, simulates
+and predicts nothing. A breast that two files both score is refused.
 """
 
 from __future__ import annotations
@@ -72,6 +79,7 @@ from fem.breasts.mesh import Mesher
 from fem.breasts.phantom import PhantomGenerator
 from fem.breasts.pool import one_blas_thread, worker_pool
 from fem.cohort import check_settings, make_breast
+from fem.contract.atomic import atomic_path
 from fem.contract.quality import signed_volume
 from fem.contract.trajectory import Trajectory
 from fem.engine.simulation import Simulation
@@ -335,6 +343,49 @@ def markdown(table: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def pooled_rows(files: list[Path], resolutions: list[str]) -> list[dict]:
+    """The per-breast rows of several ``--out`` files at ``resolutions``, of the breasts
+    scored at all of them.
+
+    Raises
+    ------
+    SystemExit
+        A file is unreadable or has no per-breast rows, or two files score the same breast;
+        the message names the file.
+    """
+    rows: list[dict] = []
+    owner: dict[str, Path] = {}
+    for path in files:
+        try:
+            breasts = json.loads(path.read_text())["breasts"]
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise SystemExit(f"{path}: not a resolution benchmark's --out file ({exc})") from exc
+        mine = [r for r in breasts if r.get("resolution") in resolutions]
+        names = {r["breast"] for r in mine}
+        for name in names:
+            if name in owner:
+                raise SystemExit(f"{path}: breast {name} is also scored in {owner[name]}")
+            owner[name] = path
+        done = {n for n in names if {r["resolution"] for r in mine if r["breast"] == n}
+                >= set(resolutions)}  # fmt: skip
+        rows += [r for r in mine if r["breast"] in done]
+    if not rows:
+        raise SystemExit(f"{', '.join(map(str, files))}: no breast scored at {resolutions}")
+    return rows
+
+
+def write_report(path: Path, settings: dict, table: list[dict], failures: list, rows: list) -> None:
+    """The summary and per-breast rows as JSON, atomically."""
+    report = {
+        "settings": {k: str(v) for k, v in settings.items()},
+        "summary": table,
+        "failures": failures,
+        "breasts": rows,
+    }
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(report, indent=1))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -369,9 +420,22 @@ def main() -> None:
         help="evaluate the breasts already simulated; mesh and simulate nothing",
     )  # fmt: skip
     ap.add_argument("--out", type=Path, default=None, help="summary and per-breast rows as JSON")
+    ap.add_argument(
+        "--pool", type=Path, nargs="+", default=None,
+        help="one table over these --out files' breasts; nothing is simulated or predicted",
+    )  # fmt: skip
     args = ap.parse_args()
     if any(f < 2 for f in args.factors):
         raise SystemExit(f"--factors must be integers >= 2, got {args.factors}")
+    if args.pool:
+        resolutions = [NATIVE] + [f"{f}x" for f in args.factors]
+        rows = pooled_rows(args.pool, resolutions)
+        table = summary(rows, resolutions)
+        print(f"{len(rows) // len(resolutions)} breasts from {len(args.pool)} files")
+        print(markdown(table))
+        if args.out:
+            write_report(args.out, vars(args), table, [], rows)
+        return
     if args.train_breasts < 0:
         raise SystemExit(f"--train-breasts must be >= 0, got {args.train_breasts}")
     train, names, split = split_names(args.split_run)
@@ -422,10 +486,7 @@ def main() -> None:
     table = summary(rows, list(folders))
     print(markdown(table))
     if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        settings = {k: str(v) for k, v in vars(args).items()}
-        report = {"settings": settings, "summary": table, "failures": failures, "breasts": rows}
-        args.out.write_text(json.dumps(report, indent=1))
+        write_report(args.out, vars(args), table, failures, rows)
 
 
 if __name__ == "__main__":

@@ -62,3 +62,24 @@ def test_models_default_to_the_split_fold_and_another_split_is_refused():
     one_fold = {**split, "split": "one_fold", "fold": None}
     with pytest.raises(SystemExit, match=r"--compression: the committed models are k-fold"):
         bench.model_path(None, "compression", one_fold)
+
+
+def test_pooled_rows_join_folds_and_refuse_a_breast_scored_twice(tmp_path):
+    """``--pool``: several folds' files make one set of rows, only breasts scored at every
+    asked resolution; a breast in two files or a file without rows is refused by name."""
+    bench = benchmark_module("resolution_generalisation")
+    fold0 = [_row("P0000_L", r, 1.0, True) for r in ("native", "2x")]
+    fold1 = [_row("P0001_R", "native", 2.0, False)]  # not scored at 2x: left out
+    fold1 += [_row("P0002_L", r, 3.0, False) for r in ("native", "2x")]
+    files = [tmp_path / "fold0.json", tmp_path / "fold1.json"]
+    for path, rows in zip(files, (fold0, fold1), strict=True):
+        bench.write_report(path, {"out": path}, bench.summary(rows, ["native"]), [], rows)
+    rows = bench.pooled_rows(files, ["native", "2x"])
+    assert sorted({r["breast"] for r in rows}) == ["P0000_L", "P0002_L"] and len(rows) == 4
+    assert bench.summary(rows, ["native", "2x"])[0]["compression_last_step_mm"] == 2.0
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []  # atomic
+    with pytest.raises(SystemExit, match=r"fold0\.json: breast P0000_L is also scored in .*fold0"):
+        bench.pooled_rows([files[0], files[0]], ["native", "2x"])
+    (tmp_path / "bad.json").write_text("{}")
+    with pytest.raises(SystemExit, match=r"bad\.json: not a resolution benchmark's --out file"):
+        bench.pooled_rows([tmp_path / "bad.json"], ["native"])
