@@ -342,7 +342,11 @@ class TrajectoryDataModule(L.LightningDataModule):
             raise ValueError(
                 f"data.fold={fold} selects a k-fold validation fold; the one-fold split has none"
             )
-        if augment_limit is not None and (isinstance(augment_limit, bool) or augment_limit < 1):
+        if augment_limit is not None and (
+            not isinstance(augment_limit, int)
+            or isinstance(augment_limit, bool)
+            or augment_limit < 1
+        ):
             raise ValueError(
                 f"data.augment_limit must be a positive number of breasts or null, "
                 f"got {augment_limit!r}"

@@ -148,6 +148,8 @@ def test_augmentation_folders_add_training_breasts_only(views, tmp_path, cls):
     assert limited[0] == limited[1] and len(limited[0]) == 2 and set(limited[0]) < set(added)
     with pytest.raises(ValueError, match=r"data\.augment_limit must be a positive number"):
         cls(str(views[0]), augment_dir=[str(finer)], augment_limit=0)
+    with pytest.raises(ValueError, match=r"data\.augment_limit must be a positive number"):
+        cls(str(views[0]), augment_dir=[str(finer)], augment_limit="many")
     bad = _run_folder(tmp_path / "bad", {"cohort": tmp_path, "data_dir": "x", "augment_dir": 3})
     with pytest.raises(ValueError, match=r"field 'data\.augment_dir' must be str or list of str"):
         TrajectoryDataModule.from_run(bad)
