@@ -79,7 +79,7 @@ from fem.breasts.mesh import Mesher
 from fem.breasts.phantom import PhantomGenerator
 from fem.breasts.pool import one_blas_thread, worker_pool
 from fem.cohort import check_settings, make_breast
-from fem.contract.atomic import atomic_path
+from fem.contract.atomic import write_json
 from fem.contract.quality import signed_volume
 from fem.contract.trajectory import Trajectory
 from fem.engine.simulation import Simulation
@@ -361,13 +361,14 @@ def pooled_rows(files: list[Path], resolutions: list[str]) -> list[dict]:
         except (OSError, ValueError, KeyError, TypeError) as exc:
             raise SystemExit(f"{path}: not a resolution benchmark's --out file ({exc})") from exc
         mine = [r for r in breasts if r.get("resolution") in resolutions]
-        names = {r["breast"] for r in mine}
-        for name in names:
+        scored: dict[str, set[str]] = {}
+        for r in mine:
+            scored.setdefault(r["breast"], set()).add(r["resolution"])
+        for name in scored:
             if name in owner:
                 raise SystemExit(f"{path}: breast {name} is also scored in {owner[name]}")
             owner[name] = path
-        done = {n for n in names if {r["resolution"] for r in mine if r["breast"] == n}
-                >= set(resolutions)}  # fmt: skip
+        done = {n for n, res in scored.items() if res >= set(resolutions)}
         rows += [r for r in mine if r["breast"] in done]
     if not rows:
         raise SystemExit(f"{', '.join(map(str, files))}: no breast scored at {resolutions}")
@@ -376,14 +377,10 @@ def pooled_rows(files: list[Path], resolutions: list[str]) -> list[dict]:
 
 def write_report(path: Path, settings: dict, table: list[dict], failures: list, rows: list) -> None:
     """The summary and per-breast rows as JSON, atomically."""
-    report = {
-        "settings": {k: str(v) for k, v in settings.items()},
-        "summary": table,
-        "failures": failures,
-        "breasts": rows,
-    }
-    with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(report, indent=1))
+    settings = {k: str(v) for k, v in settings.items()}
+    write_json(
+        {"settings": settings, "summary": table, "failures": failures, "breasts": rows}, path
+    )
 
 
 def main() -> None:
